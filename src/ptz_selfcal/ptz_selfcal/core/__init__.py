@@ -1,0 +1,1 @@
+"""Pure algorithms: numpy, scipy and OpenCV only; no rclpy and no message types."""

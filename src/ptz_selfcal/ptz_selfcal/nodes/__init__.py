@@ -1,0 +1,1 @@
+"""Thin rclpy nodes: parameters, topics and conversions over ptz_selfcal.core."""

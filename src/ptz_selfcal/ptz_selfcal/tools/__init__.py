@@ -1,0 +1,1 @@
+"""Command-line tools (the `ptz-selfcal` entry point), thin over core and nodes."""
