@@ -1,0 +1,63 @@
+"""The topic and bag contract of ptz_selfcal (DESIGN.md section 3). Every node, tool and test uses these.
+
+Names are relative so that a namespace (one node suite per camera, e.g. /cam1) prefixes them; in bags
+they are stored with a leading slash (the default namespace).
+
+Input (a live camera, or a bag from `ptz-selfcal synth`):
+- IMAGE_RAW: sensor_msgs/Image (mono8, bgr8, rgb8, mono16), or IMAGE_COMPRESSED: sensor_msgs/CompressedImage
+  (format "jpeg", "png" or image_transport's "bgr8; jpeg compressed bgr8"); header.frame_id "ptz_camera";
+  stamps are capture times.
+- JOINT_STATES: sensor_msgs/JointState with names "pan", "tilt" (radians) and "zoom" (raw encoder units,
+  focal length grows monotonically with it) at the encoder's own rate, with its own time offset and noise.
+
+Ground truth (synthetic bags only; the pipeline never subscribes to it):
+- GT_CAMERA_INFO: one CameraInfo per image, the image's header: true K, P = [K|0], R = I, full-resolution
+  width/height. distortion_model GT_DIVISION_MODEL with D = [lambda] when the lens is distorted: the
+  division model of core/distortion.py, lambda on the normalised radius r = |x - c| / fx with the centre c
+  at the principal point; otherwise "plumb_bob" with D = [0, 0, 0, 0, 0].
+- GT_JOINT_STATES: one JointState per image, the image's stamp: the exact (noise- and lag-free) pan and
+  tilt in radians and zoom encoder value.
+
+Pipeline (ptz_selfcal_msgs):
+- FRAME_IN: IngestedFrame (working-resolution mono8 image + encoders at the image stamp).
+- HOMOGRAPHY: HomographyStamped, one per frame; KEYFRAMES: KeyframeMatches for the bundle adjustment.
+- CAMERA_INFO: sensor_msgs/CameraInfo, exactly one per processed image, header copied from the image,
+  full-resolution width/height, K, P = [K|0], R = I, plumb_bob D = [k1, k2, 0, 0, 0].
+- FRAME_CALIBRATION: FrameCalibration (status, uncertainty, orientation, encoders).
+- DIAGNOSTICS: diagnostic_msgs/DiagnosticArray.
+"""
+
+IMAGE_RAW = "ptz/image_raw"
+IMAGE_COMPRESSED = "ptz/image_raw/compressed"
+JOINT_STATES = "ptz/joint_states"
+GT_CAMERA_INFO = "ptz/ground_truth/camera_info"
+GT_JOINT_STATES = "ptz/ground_truth/joint_states"
+FRAME_IN = "ptz/selfcal/frame_in"
+HOMOGRAPHY = "ptz/selfcal/homography"
+KEYFRAMES = "ptz/selfcal/keyframes"
+CAMERA_INFO = "ptz/selfcal/camera_info"
+FRAME_CALIBRATION = "ptz/selfcal/frame"
+DIAGNOSTICS = "/diagnostics"
+
+CAMERA_FRAME_ID = "ptz_camera"
+JOINT_NAMES = ("pan", "tilt", "zoom")
+GT_DIVISION_MODEL = "division"
+
+TYPES = {
+    IMAGE_RAW: "sensor_msgs/msg/Image",
+    IMAGE_COMPRESSED: "sensor_msgs/msg/CompressedImage",
+    JOINT_STATES: "sensor_msgs/msg/JointState",
+    GT_CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
+    GT_JOINT_STATES: "sensor_msgs/msg/JointState",
+    FRAME_IN: "ptz_selfcal_msgs/msg/IngestedFrame",
+    HOMOGRAPHY: "ptz_selfcal_msgs/msg/HomographyStamped",
+    KEYFRAMES: "ptz_selfcal_msgs/msg/KeyframeMatches",
+    CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
+    FRAME_CALIBRATION: "ptz_selfcal_msgs/msg/FrameCalibration",
+    DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
+}
+
+
+def bag_topic(name: str) -> str:
+    """The topic name as stored in a bag recorded in the default namespace."""
+    return name if name.startswith("/") else "/" + name
