@@ -1,0 +1,582 @@
+"""Optimal estimation by bundle adjustment (paper section 5).
+
+MLE (eq. 26): minimise the sum of squared reprojection errors |x_ij - K_i R_i X_j|^2 over the
+intrinsics K_i (per `IntrinsicsModel`), the rotations R_i (R_0 = I fixed: the gauge) and the rays X_j
+(unit directions, two degrees of freedom each). MAP (eq. 27): the same with a Gaussian prior on the
+principal point.
+
+The solver is a sparse Levenberg-Marquardt: the 2x2 block of every ray is eliminated with the Schur
+complement (all rays at once with numpy), leaving a small dense reduced camera system of the
+rotations and intrinsics. Jacobians are analytic. The inverse of the reduced normal equations, scaled
+by the residual variance, gives the 1-sigma uncertainty of every focal length and principal point.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from itertools import pairwise
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import ArrayLike, NDArray
+
+from ptz_selfcal.core.intrinsics import (
+    ASPECT,
+    CX,
+    CY,
+    SKEW,
+    F,
+    IntrinsicsModel,
+    ParamMode,
+    SelfCalibrationError,
+    SelfCalibrationResult,
+    image_centre,
+    matrices_from_values,
+    parameter_count,
+    parameter_index,
+    values_from_matrices,
+)
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class BundleObservations:
+    """Image measurements for eq. 26: observation k is ray ray_idx[k] seen in frame frame_idx[k] at xy[k]."""
+
+    frame_idx: IntArray
+    ray_idx: IntArray
+    xy: Array
+
+    def __post_init__(self) -> None:
+        self.frame_idx = np.asarray(self.frame_idx, dtype=np.intp).ravel()
+        self.ray_idx = np.asarray(self.ray_idx, dtype=np.intp).ravel()
+        self.xy = np.asarray(self.xy, dtype=float).reshape(-1, 2)
+        if not len(self.frame_idx) == len(self.ray_idx) == len(self.xy):
+            raise ValueError("frame_idx, ray_idx and xy must have the same length")
+
+
+ObservationsLike = BundleObservations | tuple[ArrayLike, ArrayLike, ArrayLike]
+
+
+def pair_observations(matches: Sequence[tuple[int, int, ArrayLike, ArrayLike]]) -> BundleObservations:
+    """Observations from keyframe-to-keyframe matches (frame_a, frame_b, xy_a (k, 2), xy_b (k, 2)).
+
+    Every match becomes its own ray seen in exactly two frames.
+    """
+    frames, rays, xys = [], [], []
+    next_ray = 0
+    for frame_a, frame_b, xy_a, xy_b in matches:
+        a = np.asarray(xy_a, dtype=float).reshape(-1, 2)
+        b = np.asarray(xy_b, dtype=float).reshape(-1, 2)
+        if len(a) != len(b):
+            raise ValueError("matched point lists differ in length")
+        ids = np.arange(next_ray, next_ray + len(a))
+        next_ray += len(a)
+        frames += [np.full(len(a), frame_a), np.full(len(b), frame_b)]
+        rays += [ids, ids]
+        xys += [a, b]
+    if not frames:
+        return BundleObservations(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros((0, 2)))
+    return BundleObservations(np.concatenate(frames), np.concatenate(rays), np.concatenate(xys))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Small vectorised helpers
+# ---------------------------------------------------------------------------------------------------
+
+
+def _rodrigues(omega: Array) -> Array:
+    """(n, 3, 3) rotation matrices exp([omega]_x) of (n, 3) rotation vectors."""
+    theta = np.linalg.norm(omega, axis=1)
+    small = theta < 1e-12
+    safe = np.where(small, 1.0, theta)
+    k = omega / safe[:, None]
+    Kx = _skew(k)
+    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3) + s * Kx + c * (Kx @ Kx)
+
+
+def _skew(v: Array) -> Array:
+    """(n, 3, 3) cross-product matrices [v]_x."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
+def _tangent_bases(X: Array) -> Array:
+    """(m, 3, 2) orthonormal bases of the tangent planes of the unit sphere at the rays X."""
+    helper = np.zeros_like(X)
+    use_x = np.abs(X[:, 0]) < 0.9
+    helper[use_x, 0] = 1.0
+    helper[~use_x, 1] = 1.0
+    b1 = np.cross(X, helper)
+    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
+    b2 = np.cross(X, b1)
+    return np.stack([b1, b2], axis=2)
+
+
+def _inverse_2x2(M: Array) -> Array:
+    """(m, 2, 2) inverses of symmetric 2x2 blocks."""
+    a, b, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 1]
+    det = a * d - b * b
+    inv = np.empty_like(M)
+    inv[:, 0, 0] = d / det
+    inv[:, 1, 1] = a / det
+    inv[:, 0, 1] = inv[:, 1, 0] = -b / det
+    return inv
+
+
+def initial_rays(obs: BundleObservations, K: Array, R: Array, n_rays: int) -> Array:
+    """Unit rays by back-projection X = R_i^T K_i^-1 x through each frame, averaged (section 5.1)."""
+    Kinv = np.linalg.inv(K)
+    xh = np.column_stack([obs.xy, np.ones(len(obs.xy))])
+    d = np.einsum("nji,njk,nk->ni", R[obs.frame_idx], Kinv[obs.frame_idx], xh)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    X = np.stack([np.bincount(obs.ray_idx, weights=d[:, c], minlength=n_rays) for c in range(3)], axis=1)
+    norm = np.linalg.norm(X, axis=1, keepdims=True)
+    return X / np.where(norm > 0, norm, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# The problem: parameter layout, residuals and Jacobians of eq. 26/27
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Layout:
+    """Where each camera unknown lives in the reduced system (index P is a dump for fixed entries)."""
+
+    intr_index: IntArray  # (n, 5) parameter_index of the model (-1 = known)
+    free_columns: IntArray  # intrinsic columns that are not KNOWN
+    local: IntArray  # (n, L) global index of each frame's local unknowns: 3 rotation + free intrinsics
+    n_params: int  # P
+    prior_index: IntArray  # global indices of principal point unknowns under the prior
+    prior_axis: IntArray  # 0 (cx) or 1 (cy) for each prior_index
+
+
+def _layout(model: IntrinsicsModel, n_frames: int, use_prior: bool) -> _Layout:
+    intr_index = parameter_index(model, n_frames)
+    n_intr = parameter_count(model, n_frames)
+    free = np.array([c for c, mode in enumerate(model.modes) if mode is not ParamMode.KNOWN], dtype=np.intp)
+    P = n_intr + 3 * (n_frames - 1)
+    rot = np.full((n_frames, 3), P, dtype=np.intp)
+    rot[1:] = n_intr + np.arange(3 * (n_frames - 1)).reshape(-1, 3)
+    local = np.concatenate([rot, intr_index[:, free]], axis=1)
+    prior_index = np.zeros(0, dtype=np.intp)
+    prior_axis = np.zeros(0, dtype=np.intp)
+    if use_prior and model.principal_point is not ParamMode.KNOWN:
+        cx_ids = np.unique(intr_index[:, CX])
+        cy_ids = np.unique(intr_index[:, CY])
+        prior_index = np.concatenate([cx_ids, cy_ids])
+        prior_axis = np.concatenate([np.zeros(len(cx_ids), np.intp), np.ones(len(cy_ids), np.intp)])
+    return _Layout(intr_index, free, local, P, prior_index, prior_axis)
+
+
+@dataclass
+class _State:
+    values: Array  # (n, 5) intrinsics table (f, aspect, skew, cx, cy)
+    R: Array  # (n, 3, 3) world (= frame 0) to camera rotations
+    X: Array  # (m, 3) unit rays
+
+
+def _residuals(state: _State, obs: _PreparedObservations) -> tuple[Array, Array]:
+    """Reprojection residuals (N, 2) of eq. 26 and the camera-frame rays Y = R_i X_j (N, 3)."""
+    Y = np.einsum("nij,nj->ni", state.R[obs.frame_idx], state.X[obs.ray_idx])
+    v = state.values[obs.frame_idx]
+    a, b = Y[:, 0] / Y[:, 2], Y[:, 1] / Y[:, 2]
+    u = v[:, ASPECT] * v[:, F] * a + v[:, SKEW] * v[:, F] * b + v[:, CX]
+    w = v[:, F] * b + v[:, CY]
+    return np.column_stack([u, w]) - obs.xy, Y
+
+
+def _jacobians(state: _State, obs: _PreparedObservations, Y: Array, layout: _Layout) -> tuple[Array, Array]:
+    """Analytic Jacobians of the residuals: camera part (N, 2, L) and ray part (N, 2, 2)."""
+    v = state.values[obs.frame_idx]
+    f, gamma, s = v[:, F], v[:, ASPECT], v[:, SKEW]
+    inv_z = 1.0 / Y[:, 2]
+    a, b = Y[:, 0] * inv_z, Y[:, 1] * inv_z
+    # d(u, v)/dY of the pinhole projection with K of eq. 1.
+    A = np.zeros((len(Y), 2, 3))
+    A[:, 0, 0] = gamma * f * inv_z
+    A[:, 0, 1] = s * f * inv_z
+    A[:, 0, 2] = -(gamma * f * a + s * f * b) * inv_z
+    A[:, 1, 1] = f * inv_z
+    A[:, 1, 2] = -f * b * inv_z
+    # Left update R <- exp([w]_x) R: dY/dw = -[Y]_x. Ray update X <- normalise(X + B d): dY/dd = R B.
+    J_rot = np.cross(Y[:, None, :], A)
+    B = _tangent_bases(state.X)
+    J_ray = A @ (state.R[obs.frame_idx] @ B[obs.ray_idx])
+    J_intr = np.zeros((len(Y), 2, 5))
+    J_intr[:, 0, F] = gamma * a + s * b
+    J_intr[:, 1, F] = b
+    J_intr[:, 0, ASPECT] = f * a
+    J_intr[:, 0, SKEW] = f * b
+    J_intr[:, 0, CX] = 1.0
+    J_intr[:, 1, CY] = 1.0
+    J_cam = np.concatenate([J_rot, J_intr[:, :, layout.free_columns]], axis=2)
+    return J_cam, J_ray
+
+
+def _prior_terms(
+    state: _State, layout: _Layout, prior: tuple[Array, Array, float] | None
+) -> tuple[Array, Array]:
+    """Residuals of the principal point prior of eq. 27 and their (constant) derivatives."""
+    if prior is None or len(layout.prior_index) == 0:
+        return np.zeros(0), np.zeros(0)
+    mean, sigma, noise = prior
+    # Value of each prior unknown: the first frame holding it.
+    frame = np.array(
+        [
+            np.flatnonzero(layout.intr_index[:, CX + ax] == p)[0]
+            for p, ax in zip(layout.prior_index, layout.prior_axis)
+        ]
+    )
+    value = state.values[frame, CX + layout.prior_axis]
+    weight = noise / sigma[layout.prior_axis]
+    return weight * (value - mean[layout.prior_axis]), weight
+
+
+@dataclass
+class _Normal:
+    """The normal equations in block form: U (P+1, P+1), W (P+1, m, 2), V (m, 2, 2), gradients."""
+
+    U: Array
+    W: Array
+    V: Array
+    g_cam: Array
+    g_ray: Array
+
+
+def _normal_equations(
+    r: Array,
+    J_cam: Array,
+    J_ray: Array,
+    obs: BundleObservations,
+    layout: _Layout,
+    n_rays: int,
+    prior_grad: tuple[Array, Array],
+) -> _Normal:
+    L = layout.local.shape[1]
+    P1 = layout.n_params + 1
+    bounds = np.append(obs.frame_starts, len(r))
+    # Camera blocks: every observation of frame i shares the frame's local index list (one GEMM each).
+    U_frame = np.empty((len(bounds) - 1, L, L))
+    g_frame = np.empty((len(bounds) - 1, L))
+    for i, (lo, hi) in enumerate(pairwise(bounds)):
+        J_i = J_cam[lo:hi].reshape(-1, L)
+        U_frame[i] = J_i.T @ J_i
+        g_frame[i] = J_i.T @ r[lo:hi].ravel()
+    loc = layout.local
+    rows = np.repeat(loc[:, :, None], L, axis=2)
+    cols = np.repeat(loc[:, None, :], L, axis=1)
+    U = np.bincount((rows * P1 + cols).ravel(), weights=U_frame.ravel(), minlength=P1 * P1).reshape(P1, P1)
+    g_cam = np.bincount(loc.ravel(), weights=g_frame.ravel(), minlength=P1)
+    # Ray blocks (2x2 each) and the camera-ray coupling W (dense over rays, eliminated later).
+    ray = obs.ray_idx
+    v00 = np.bincount(ray, weights=(J_ray[:, :, 0] ** 2).sum(axis=1), minlength=n_rays)
+    v01 = np.bincount(ray, weights=(J_ray[:, :, 0] * J_ray[:, :, 1]).sum(axis=1), minlength=n_rays)
+    v11 = np.bincount(ray, weights=(J_ray[:, :, 1] ** 2).sum(axis=1), minlength=n_rays)
+    V = np.stack([v00, v01, v01, v11], axis=1).reshape(n_rays, 2, 2)
+    g_ray = np.stack(
+        [np.bincount(ray, weights=(J_ray[:, :, c] * r).sum(axis=1), minlength=n_rays) for c in range(2)],
+        axis=1,
+    )
+    W_obs = J_cam[:, 0, :, None] * J_ray[:, 0, None, :] + J_cam[:, 1, :, None] * J_ray[:, 1, None, :]
+    w_index = (loc[obs.frame_idx][:, :, None] * n_rays + ray[:, None, None]) * 2 + np.arange(2)
+    W = np.bincount(w_index.ravel(), weights=W_obs.ravel(), minlength=P1 * n_rays * 2).reshape(P1, n_rays, 2)
+    # MAP prior of eq. 27: diagonal Gauss-Newton terms on the principal point unknowns.
+    prior_r, prior_J = prior_grad
+    if len(prior_r):
+        U[layout.prior_index, layout.prior_index] += prior_J**2
+        g_cam[layout.prior_index] += prior_J * prior_r
+    U[-1, :] = 0.0
+    U[:, -1] = 0.0
+    g_cam[-1] = 0.0
+    W[-1] = 0.0
+    return _Normal(U, W, V, g_cam, g_ray)
+
+
+def _times_blocks(W: Array, V: Array) -> Array:
+    """(P, m, 2) W times the (m, 2, 2) blocks V, ray by ray."""
+    return W[:, :, :1] * V[None, :, 0, :] + W[:, :, 1:] * V[None, :, 1, :]
+
+
+def _solve_reduced(S: Array, rhs: Array) -> Array:
+    """Solve the symmetric reduced camera system with Jacobi scaling (Cholesky, lstsq fallback)."""
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    Ss = S / d[:, None] / d[None, :]
+    try:
+        x = scipy.linalg.cho_solve(
+            scipy.linalg.cho_factor(Ss, check_finite=False), rhs / d, check_finite=False
+        )
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(Ss, rhs / d, rcond=None)[0]
+    return x / d
+
+
+def _schur_step(ne: _Normal, lam: float, D_cam: Array, D_ray: Array) -> tuple[Array, Array]:
+    """Damped Gauss-Newton step (U + lam D) dc + W dp = -g_c, W^T dc + (V + lam D) dp = -g_p."""
+    P = len(ne.U) - 1
+    U = ne.U[:P, :P] + lam * np.diag(D_cam)
+    V = ne.V + lam * D_ray[:, :, None] * np.eye(2)
+    V_inv = _inverse_2x2(V)
+    W = ne.W[:P].reshape(P, -1)
+    WV = _times_blocks(ne.W[:P], V_inv).reshape(P, -1)
+    S = U - WV @ W.T
+    rhs = -ne.g_cam[:P] + WV @ ne.g_ray.ravel()
+    d_cam = _solve_reduced(S, rhs)
+    d_ray = -np.einsum("mjk,mk->mj", V_inv, ne.g_ray + (W.T @ d_cam).reshape(-1, 2))
+    return d_cam, d_ray
+
+
+def _reduced_covariance(ne: _Normal) -> Array:
+    """Inverse of the undamped reduced camera system (rays marginalised), unit residual variance."""
+    P = len(ne.U) - 1
+    V_inv = _inverse_2x2(ne.V)
+    W = ne.W[:P].reshape(P, -1)
+    WV = _times_blocks(ne.W[:P], V_inv).reshape(P, -1)
+    S = ne.U[:P, :P] - WV @ W.T
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    Ss = S / d[:, None] / d[None, :]
+    try:
+        inv = scipy.linalg.cho_solve(
+            scipy.linalg.cho_factor(Ss, check_finite=False), np.eye(P), check_finite=False
+        )
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(Ss)
+    return inv / d[:, None] / d[None, :]
+
+
+def _apply_step(state: _State, d_cam: Array, d_ray: Array, layout: _Layout, f_min: float) -> _State:
+    """New state after a step: intrinsics additive, rotations on the left, rays on the sphere."""
+    d = np.append(d_cam, 0.0)
+    values = state.values.copy()
+    free = layout.free_columns
+    idx = layout.intr_index[:, free]
+    values[:, free] += d[np.where(idx >= 0, idx, len(d) - 1)]
+    values[:, F] = np.maximum(values[:, F], f_min)
+    omega = d[layout.local[:, :3]]
+    R = _rodrigues(omega) @ state.R
+    B = _tangent_bases(state.X)
+    X = state.X + np.einsum("mjk,mk->mj", B, d_ray)
+    X /= np.linalg.norm(X, axis=1, keepdims=True)
+    return _State(values, R, X)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Public API
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _PreparedObservations:
+    """Observations sorted by frame, rays renumbered 0..m-1; frame_starts[i] = first row of frame i."""
+
+    frame_idx: IntArray
+    ray_idx: IntArray
+    xy: Array
+    frame_starts: IntArray
+
+
+def _prepare(observations: ObservationsLike, n_frames: int) -> tuple[_PreparedObservations, IntArray]:
+    """Sort by frame, keep rays seen at least twice, renumber rays densely. Returns the original ids."""
+    obs = observations if isinstance(observations, BundleObservations) else BundleObservations(*observations)
+    if len(obs.frame_idx) and (obs.frame_idx.min() < 0 or obs.frame_idx.max() >= n_frames):
+        raise ValueError("frame_idx out of range")
+    _, compact, counts = np.unique(obs.ray_idx, return_inverse=True, return_counts=True)
+    keep = counts[compact] >= 2
+    kept_ids, compact = np.unique(obs.ray_idx[keep], return_inverse=True)
+    order = np.argsort(obs.frame_idx[keep], kind="stable")
+    frame_idx = obs.frame_idx[keep][order]
+    seen = np.bincount(frame_idx, minlength=n_frames)
+    if (seen == 0).any():
+        raise SelfCalibrationError(
+            f"frames {np.flatnonzero(seen == 0).tolist()} share no ray with another frame"
+        )
+    starts = np.concatenate([[0], np.cumsum(seen)[:-1]]).astype(np.intp)
+    return _PreparedObservations(frame_idx, compact[order], obs.xy[keep][order], starts), kept_ids
+
+
+def bundle_adjust(
+    observations: ObservationsLike,
+    K_init: ArrayLike,
+    R_init: ArrayLike,
+    image_size: tuple[int, int],
+    model: IntrinsicsModel,
+    *,
+    rays_init: ArrayLike | None = None,
+    pp_prior: tuple[ArrayLike, ArrayLike] | None = None,
+    noise_sigma: float = 1.0,
+    max_iterations: int = 50,
+    f_min: float | None = None,
+    tolerance: float = 1e-10,
+) -> SelfCalibrationResult:
+    """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
+
+    observations: BundleObservations or (frame_idx (N,), ray_idx (N,), xy (N, 2)); rays seen in fewer
+    than two frames are ignored. K_init, R_init: (n, 3, 3) starting intrinsics and world-to-camera
+    rotations (e.g. from `lm_selfcalibration`); the result's R are relative to frame 0 (R[0] = I, the
+    gauge). rays_init: (max ray id + 1, 3) starting rays in the frame of R_init, default back-projected.
+    noise_sigma: the image noise level, which weighs the prior against the reprojection errors
+    (eq. 27 as printed is noise_sigma = 1 px). f_min: lower bound on the focal length (default a tenth
+    of the image width). Uncertainties are 1-sigma from the reduced normal equations scaled by the
+    residual variance; `residual` is the rms reprojection error in pixels.
+    """
+    K0 = np.asarray(K_init, dtype=float).reshape(-1, 3, 3)
+    R_in = np.asarray(R_init, dtype=float).reshape(-1, 3, 3)
+    n = len(K0)
+    if len(R_in) != n:
+        raise ValueError("K_init and R_init differ in frame count")
+    obs, ray_ids = _prepare(observations, n)
+    n_rays = len(ray_ids)
+    if n_rays == 0:
+        raise SelfCalibrationError("no ray is seen in two frames")
+    f_min = 0.1 * image_size[0] if f_min is None else float(f_min)
+
+    # Gauge: express everything in frame 0's camera frame so that R_0 = I stays fixed.
+    R = np.einsum("nij,kj->nik", R_in, R_in[0])
+    values = values_from_matrices(K0)
+    index = parameter_index(model, n)
+    known = model.known_values(image_size)
+    for c in range(5):
+        if (index[:, c] < 0).all():
+            values[:, c] = known[c]
+        else:  # constant unknowns start at their mean over frames
+            for p in np.unique(index[:, c]):
+                values[index[:, c] == p, c] = values[index[:, c] == p, c].mean()
+    if rays_init is None:
+        X = initial_rays(obs, matrices_from_values(values), R, n_rays)
+    else:
+        X = np.asarray(rays_init, dtype=float)[ray_ids] @ R_in[0].T
+        X /= np.linalg.norm(X, axis=1, keepdims=True)
+    state = _State(values, R, X)
+
+    prior = None
+    if pp_prior is not None:
+        mean = np.asarray(pp_prior[0], dtype=float).reshape(2)
+        sigma = np.asarray(pp_prior[1], dtype=float).reshape(2)
+        prior = (mean, sigma, float(noise_sigma))
+    layout = _layout(model, n, prior is not None)
+    return _levenberg_marquardt(
+        state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model
+    )
+
+
+def _cost(r: Array, prior_r: Array) -> float:
+    return float(np.sum(r * r) + np.sum(prior_r * prior_r))
+
+
+def _levenberg_marquardt(
+    state: _State,
+    obs: _PreparedObservations,
+    layout: _Layout,
+    prior: tuple[Array, Array, float] | None,
+    n_rays: int,
+    ray_ids: IntArray,
+    max_iterations: int,
+    f_min: float,
+    tolerance: float,
+    model: IntrinsicsModel,
+) -> SelfCalibrationResult:
+    """Sparse LM with Marquardt's diagonal damping and Nielsen's damping update."""
+    r, Y = _residuals(state, obs)
+    prior_terms = _prior_terms(state, layout, prior)
+    cost = _cost(r, prior_terms[0])
+    initial_cost = cost
+    exact_cost = 1e-20 * len(r)  # rms below 1e-10 px: nothing left to fit
+    lam, nu = 1e-3, 2.0
+    iterations, message = 0, "maximum iterations reached"
+    ne = None
+    for iterations in range(1, max_iterations + 1):  # noqa: B007
+        J_cam, J_ray = _jacobians(state, obs, Y, layout)
+        ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms)
+        P = layout.n_params
+        D_cam = np.maximum(np.diag(ne.U)[:P], 1e-12 * max(np.diag(ne.U).max(), 1e-300))
+        D_ray = np.maximum(ne.V[:, [0, 1], [0, 1]], 1e-12)
+        accepted = False
+        while not accepted:
+            d_cam, d_ray = _schur_step(ne, lam, D_cam, D_ray)
+            candidate = _apply_step(state, d_cam, d_ray, layout, f_min)
+            r_new, Y_new = _residuals(candidate, obs)
+            prior_new = _prior_terms(candidate, layout, prior)
+            cost_new = _cost(r_new, prior_new[0])
+            # Predicted decrease of the quadratic model (cost = |r|^2).
+            predicted = float(
+                d_cam @ (lam * D_cam * d_cam - ne.g_cam[:P])
+                + np.sum(d_ray * (lam * D_ray * d_ray - ne.g_ray))
+            )
+            rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
+            if predicted <= 0.1 * tolerance * cost:  # the model promises nothing more: converged
+                break
+            if np.isfinite(cost_new) and rho > 0:
+                accepted = True
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+            else:
+                lam *= nu
+                nu *= 2.0
+                if lam > 1e16:
+                    break
+        if not accepted:
+            message = "converged" if cost <= exact_cost or lam <= 1e16 else "no further decrease"
+            break
+        decrease = cost - cost_new
+        state, r, Y, prior_terms, cost = candidate, r_new, Y_new, prior_new, cost_new
+        if decrease <= tolerance * cost or cost <= exact_cost:
+            message = "converged"
+            break
+
+    # Uncertainty from the undamped reduced system at the solution (rays marginalised).
+    J_cam, J_ray = _jacobians(state, obs, Y, layout)
+    ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms)
+    n_obs = len(r)
+    dof = max(2 * n_obs + len(prior_terms[0]) - layout.n_params - 2 * n_rays, 1)
+    variance = cost / dof
+    cov = _reduced_covariance(ne) * variance
+    sd = np.append(np.sqrt(np.maximum(np.diag(cov), 0.0)), 0.0)
+    idx = np.where(layout.intr_index >= 0, layout.intr_index, len(sd) - 1)
+    sigma_f = sd[idx[:, F]]
+    sigma_pp = np.column_stack([sd[idx[:, CX]], sd[idx[:, CY]]])
+
+    rays = np.full((int(ray_ids.max()) + 1, 3), np.nan)
+    rays[ray_ids] = state.X
+    residual = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    ok = bool(np.isfinite(cost) and (state.values[:, F] > f_min).all())
+    if not ok:
+        message = "focal length at its lower bound" if np.isfinite(cost) else "non-finite cost"
+    method = "map" if prior is not None else "mle"
+    return SelfCalibrationResult(
+        K=matrices_from_values(state.values),
+        R=state.R,
+        sigma_f=sigma_f,
+        sigma_pp=sigma_pp,
+        residual=residual,
+        method=method,
+        iterations=iterations,
+        ok=ok,
+        message=message,
+        cost=cost,
+        info={
+            "rays": rays,
+            "covariance": cov,
+            "residual_variance": variance,
+            "initial_cost": initial_cost,
+            "n_observations": n_obs,
+            "n_rays": n_rays,
+            "model": model,
+        },
+    )
+
+
+def default_pp_prior(image_size: tuple[int, int], sigma: float = 10.0) -> tuple[Array, Array]:
+    """The paper's prior of eq. 27: the principal point near the image centre, sigma pixels each way."""
+    return np.array(image_centre(image_size)), np.array([sigma, sigma])
