@@ -1,0 +1,414 @@
+"""Radial distortion from image data alone while the camera zooms (paper section 7.2, beyond the paper).
+
+A rotating camera maps UNDISTORTED points of keyframe i to those of keyframe j by a homography
+(eq. 8); distorted points are not related by any homography, so the transfer error of the best
+homography measures the distortion left uncorrected (section 7.2, Fig. 15). We minimise the symmetric
+transfer error over one division-model coefficient per keyframe and one homography per keyframe pair:
+
+    min  sum_pairs sum_points |d_j(H u_i(x_i)) - x_j|^2 + |d_i(H^-1 u_j(x_j)) - x_i|^2
+
+(u_k / d_k = undistortion / distortion with lam_k, see core/distortion.py). This is the paper's first
+option (one kappa per image) but on homographies instead of the full bundle adjustment: the homography
+absorbs K and R, so the problem is small and well conditioned. Optionally the coefficients are tied by
+the distortion-versus-focal curve (the paper's second option, eq. 35, with a better-behaved curve):
+see `DistortionVsFocal`.
+
+Seams for the calibrator: everything is expressed with dimensionless lam on radius / f; the image data
+constrain the pixel-unit coefficient lam / f^2, so if f is refined later, `rescale_lambda` converts.
+Pure rotation is required: a pure zoom about the distortion centre leaves lam_j (f_i/f_j)^2 - lam_i
+unobservable to first order, so pairs should differ by a rotation of a good part of the field of view.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from ptz_selfcal.core.distortion import half_diagonal
+from ptz_selfcal.core.homography import homography_dlt
+
+Array = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------------------------------
+# Helpers on normalised coordinates (x - c) / f
+# --------------------------------------------------------------------------------------------------
+def rescale_lambda(lam: float, f_old: float, f_new: float) -> float:
+    """The same pixel-space distortion expressed for a new focal length (lam / f^2 is invariant)."""
+    return float(lam * (f_new / f_old) ** 2)
+
+
+def _undistort_normalised(a: Array, lam: float) -> Array:
+    return a / (1.0 + lam * np.einsum("ij,ij->i", a, a))[:, None]
+
+
+def _distort_normalised(a: Array, lam: float) -> Array:
+    # closed-form root of the division quadratic; clamped so residuals stay finite for pin-cushion
+    disc = np.maximum(1.0 - 4.0 * lam * np.einsum("ij,ij->i", a, a), 1e-6)
+    return a * (2.0 / (1.0 + np.sqrt(disc)))[:, None]
+
+
+def _apply(H: Array, a: Array) -> Array:
+    p = a @ H[:, :2].T + H[:, 2]
+    return p[:, :2] / p[:, 2:3]
+
+
+def _homography_from_update(delta: Array, H0: Array) -> Array:
+    """H = (I + D) H0 with D[2, 2] = 0: a local 8-parameter chart around H0."""
+    D = np.append(delta, 0.0).reshape(3, 3)
+    return (np.eye(3) + D) @ H0
+
+
+def _centre_pair(centre: ArrayLike) -> tuple[Array, Array]:
+    c = np.asarray(centre, dtype=float)
+    if c.shape == (2,):
+        return c, c
+    if c.shape == (2, 2):
+        return c[0], c[1]
+    raise ValueError("centre must be (2,) or (2, 2)")
+
+
+# --------------------------------------------------------------------------------------------------
+# Distortion-versus-focal curve
+# --------------------------------------------------------------------------------------------------
+class DistortionVsFocal:
+    """lam(f) through the corner shift s (distortion %, as lens data sheets quote it) versus 1/f.
+
+    s(f) = c0 + c1 u + c2 u^2,  u = f_ref / f  (field of view), and lam = -s / ((1 + s) (D / f)^2) with
+    D the image half-diagonal (division_lambda_for_corner_shift). Why this curve and not eq. 35's cubic
+    in f: a zoom lens's distortion is a smooth function of the field of view, strongest (barrel) at the
+    wide end and fading, often through zero, towards the tele end; a polynomial in 1/f is low order for
+    that behaviour and stays bounded as f grows, where a cubic in f explodes. Outside the fitted range
+    s is extrapolated proportionally to 1/f (distortion fades with the field of view), never by the
+    polynomial. The fit is weighted, robust (Huber IRLS) and the degree is reduced when the focal
+    range seen so far cannot support it.
+    """
+
+    def __init__(self, width: int, height: int, degree: int = 2, f_ref: float | None = None) -> None:
+        self.half_diagonal = half_diagonal(width, height)
+        self.degree = degree
+        self.f_ref = f_ref
+        self.coefficients: Array | None = None
+        self.f_range: tuple[float, float] | None = None
+        self.residual_rms: float = float("nan")
+
+    # conversions between lam and the corner shift s at focal length f
+    def shift_from_lambda(self, f: ArrayLike, lam: ArrayLike) -> Array:
+        rho2 = (self.half_diagonal / np.asarray(f, dtype=float)) ** 2
+        return 1.0 / (1.0 + np.asarray(lam, dtype=float) * rho2) - 1.0
+
+    def lambda_from_shift(self, f: ArrayLike, shift: ArrayLike) -> Array:
+        rho2 = (self.half_diagonal / np.asarray(f, dtype=float)) ** 2
+        s = np.asarray(shift, dtype=float)
+        return -s / ((1.0 + s) * rho2)
+
+    def fit(
+        self, f: ArrayLike, lam: ArrayLike, weights: ArrayLike | None = None, huber_px: float = 1.0
+    ) -> DistortionVsFocal:
+        """Fit from per-keyframe (f, lam) estimates; weights = 1 / sigma^2 of lam (or None).
+
+        huber_px: the Huber threshold in pixels of corner displacement (robust against bad keyframes).
+        """
+        f = np.asarray(f, dtype=float).ravel()
+        lam = np.asarray(lam, dtype=float).ravel()
+        ok = np.isfinite(f) & np.isfinite(lam) & (f > 0)
+        w = np.ones_like(f) if weights is None else np.asarray(weights, dtype=float).ravel()
+        ok &= np.isfinite(w) & (w > 0)
+        f, lam, w = f[ok], lam[ok], w[ok]
+        if len(f) == 0:
+            raise ValueError("no valid samples")
+        if self.f_ref is None:
+            self.f_ref = float(f.min())
+        u = self.f_ref / f
+        s = self.shift_from_lambda(f, lam)
+        # weights on s: d s / d lam = -rho^2 / (1 + lam rho^2)^2, so sigma_s = |ds/dlam| sigma_lam
+        rho2 = (self.half_diagonal / f) ** 2
+        w = w / (rho2 / (1.0 + lam * rho2) ** 2) ** 2
+        w = w / w.max()
+        distinct = len(np.unique(np.round(u, 3)))
+        span = u.max() - u.min()
+        degree = min(self.degree, distinct - 1, 1 if span < 0.15 else self.degree)
+        degree = max(degree, 0)
+        A = np.vander(u, degree + 1, increasing=True)
+        robust = np.ones_like(s)
+        threshold = huber_px / self.half_diagonal
+        coeffs = np.zeros(degree + 1)
+        for _ in range(10):
+            sw = np.sqrt(w * robust)
+            coeffs = np.linalg.lstsq(A * sw[:, None], s * sw, rcond=None)[0]
+            res = np.abs(A @ coeffs - s)
+            robust = np.where(res <= threshold, 1.0, threshold / np.maximum(res, 1e-15))
+        self.coefficients = np.concatenate([coeffs, np.zeros(self.degree + 1 - len(coeffs))])
+        self.f_range = (float(f.min()), float(f.max()))
+        self.residual_rms = float(np.sqrt(np.mean((A @ coeffs - s) ** 2)) * self.half_diagonal)
+        return self
+
+    def predict_shift(self, f: ArrayLike) -> Array:
+        if self.coefficients is None or self.f_range is None or self.f_ref is None:
+            raise RuntimeError("DistortionVsFocal is not fitted")
+        f = np.asarray(f, dtype=float)
+        u = self.f_ref / f
+        u_lo, u_hi = self.f_ref / self.f_range[1], self.f_ref / self.f_range[0]
+        u_b = np.clip(u, u_lo, u_hi)
+        s_b = np.polynomial.polynomial.polyval(u_b, self.coefficients)
+        return s_b * (u / u_b)  # proportional to 1/f outside the fitted range
+
+    def predict(self, f: ArrayLike) -> Array:
+        """lam at focal length(s) f."""
+        return self.lambda_from_shift(f, self.predict_shift(f))
+
+    def in_range(self, f: float) -> bool:
+        return self.f_range is not None and self.f_range[0] <= f <= self.f_range[1]
+
+
+# --------------------------------------------------------------------------------------------------
+# Joint estimation over keyframe pairs
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class KeyframeMatch:
+    """Corresponding distorted pixels between keyframes i and j (inliers, full-resolution pixels)."""
+
+    i: int
+    j: int
+    pts_i: Array
+    pts_j: Array
+
+
+@dataclass
+class KeyframeDistortion:
+    lam: Array  # per keyframe, dimensionless (radius / f)
+    sigma_lam: Array  # 1-sigma from the Gauss-Newton covariance (inf where unobserved)
+    homographies: list[Array]  # per match: undistorted pixels of i -> undistorted pixels of j
+    rms: float  # symmetric transfer error, pixels, all matches
+    pair_rms: Array
+    rms_undistorted_model: float = float("nan")  # the same with lam = 0 (what correction gained)
+    curve_coefficients: Array | None = None
+    converged: bool = True
+    message: str = field(default="")
+
+
+@dataclass
+class PairDistortion:
+    lam_i: float
+    lam_j: float
+    H: Array  # undistorted pixels of i -> undistorted pixels of j
+    rms: float
+    sigma_lam_i: float = float("nan")
+    sigma_lam_j: float = float("nan")
+
+
+def _normalise(pts: ArrayLike, centre: Array, f: float) -> Array:
+    return (np.asarray(pts, dtype=float).reshape(-1, 2) - centre) / f
+
+
+def _initial_homography(a: Array, b: Array, lam_i: float, lam_j: float) -> Array:
+    H = homography_dlt(_undistort_normalised(a, lam_i), _undistort_normalised(b, lam_j))
+    return H / np.cbrt(np.linalg.det(H))
+
+
+def _pair_residuals(
+    a: Array, b: Array, lam_i: float, lam_j: float, H: Array, f_i: float, f_j: float
+) -> Array:
+    """Symmetric transfer residuals in pixels, (4N,)."""
+    res_j = (_distort_normalised(_apply(H, _undistort_normalised(a, lam_i)), lam_j) - b) * f_j
+    res_i = (_distort_normalised(_apply(np.linalg.inv(H), _undistort_normalised(b, lam_j)), lam_i) - a) * f_i
+    return np.concatenate([res_j.ravel(), res_i.ravel()])
+
+
+def _to_pixels(H_norm: Array, centre_i: Array, centre_j: Array, f_i: float, f_j: float) -> Array:
+    """Homography on normalised coordinates -> on pixels."""
+    Ni = np.array([[1.0 / f_i, 0.0, -centre_i[0] / f_i], [0.0, 1.0 / f_i, -centre_i[1] / f_i], [0, 0, 1.0]])
+    Mj = np.array([[f_j, 0.0, centre_j[0]], [0.0, f_j, centre_j[1]], [0, 0, 1.0]])
+    H = Mj @ H_norm @ Ni
+    return H / H[2, 2]
+
+
+def estimate_keyframe_distortion(
+    matches: Sequence[KeyframeMatch],
+    focals: ArrayLike,
+    centres: ArrayLike,
+    lam0: ArrayLike | None = None,
+    curve: DistortionVsFocal | None = None,
+    loss: str = "soft_l1",
+    f_scale_px: float = 2.0,
+    max_nfev: int = 200,
+) -> KeyframeDistortion:
+    """One lam per keyframe (or the curve's coefficients if `curve` is given) and one H per match.
+
+    focals: (K,) current focal estimates (a nominal value is fine: only lam / f^2 is observed);
+    centres: (2,) or (K, 2) distortion centres (principal points); lam0: (K,) starting values.
+    Robust loss (soft_l1, f_scale_px pixels) against residual outliers in the matches.
+    """
+    focals = np.asarray(focals, dtype=float).ravel()
+    n_kf = len(focals)
+    centres = np.asarray(centres, dtype=float)
+    centres = np.tile(centres, (n_kf, 1)) if centres.shape == (2,) else centres.reshape(n_kf, 2)
+    lam_init = np.zeros(n_kf) if lam0 is None else np.asarray(lam0, dtype=float).ravel().copy()
+    norm = [
+        (_normalise(m.pts_i, centres[m.i], focals[m.i]), _normalise(m.pts_j, centres[m.j], focals[m.j]))
+        for m in matches
+    ]
+    if not matches:
+        raise ValueError("no keyframe matches")
+
+    # distortion parameters: per-keyframe lam, or curve coefficients (in corner-shift units)
+    if curve is not None:
+        if curve.f_ref is None:
+            curve.f_ref = float(focals.min())
+        u = curve.f_ref / focals
+        V = np.vander(u, curve.degree + 1, increasing=True)
+        s0 = curve.shift_from_lambda(focals, lam_init)
+        c0 = np.linalg.lstsq(V, s0, rcond=None)[0]
+        n_dist = curve.degree + 1
+
+        def lams_of(p: Array) -> Array:
+            return curve.lambda_from_shift(focals, V @ p)
+
+        p_init = c0
+    else:
+        n_dist = n_kf
+
+        def lams_of(p: Array) -> Array:
+            return p
+
+        p_init = lam_init
+    H0 = [_initial_homography(a, b, lam_init[m.i], lam_init[m.j]) for m, (a, b) in zip(matches, norm)]
+
+    def residuals(x: Array) -> Array:
+        lams = lams_of(x[:n_dist])
+        out = []
+        for k, (m, (a, b)) in enumerate(zip(matches, norm)):
+            H = _homography_from_update(x[n_dist + 8 * k : n_dist + 8 * k + 8], H0[k])
+            out.append(_pair_residuals(a, b, lams[m.i], lams[m.j], H, focals[m.i], focals[m.j]))
+        return np.concatenate(out)
+
+    sizes = [4 * len(a) for a, _ in norm]
+    sparsity = lil_matrix((sum(sizes), n_dist + 8 * len(matches)), dtype=int)
+    row = 0
+    for k, (m, n_res) in enumerate(zip(matches, sizes)):
+        cols = list(range(n_dist)) if curve is not None else [m.i, m.j]
+        for c in cols:
+            sparsity[row : row + n_res, c] = 1
+        sparsity[row : row + n_res, n_dist + 8 * k : n_dist + 8 * k + 8] = 1
+        row += n_res
+    x0 = np.concatenate([p_init, np.zeros(8 * len(matches))])
+    result = least_squares(
+        residuals,
+        x0,
+        jac_sparsity=sparsity,
+        method="trf",
+        loss=loss,
+        f_scale=f_scale_px,
+        x_scale="jac",
+        max_nfev=max_nfev,
+    )
+    x = result.x
+    lams = lams_of(x[:n_dist])
+    res = residuals(x)
+    # per-pair rms of point transfer distances, and the covariance of lam (Gauss-Newton, robust-free)
+    pair_rms = []
+    row = 0
+    for n_res in sizes:
+        r = res[row : row + n_res]
+        pair_rms.append(np.sqrt(np.mean(r**2) * 2.0))
+        row += n_res
+    sigma = _lambda_sigmas(result.jac, res, n_dist, curve is not None, n_kf, matches)
+    if curve is not None:
+        sigma = _curve_lambda_sigmas(result.jac, res, n_dist, focals, curve, x[:n_dist])
+    homographies = [
+        _to_pixels(
+            _homography_from_update(x[n_dist + 8 * k : n_dist + 8 * k + 8], H0[k]),
+            centres[m.i],
+            centres[m.j],
+            focals[m.i],
+            focals[m.j],
+        )
+        for k, m in enumerate(matches)
+    ]
+    zero = np.concatenate(
+        [
+            _pair_residuals(a, b, 0.0, 0.0, _initial_homography(a, b, 0.0, 0.0), focals[m.i], focals[m.j])
+            for m, (a, b) in zip(matches, norm)
+        ]
+    )
+    return KeyframeDistortion(
+        lam=np.asarray(lams, dtype=float),
+        sigma_lam=sigma,
+        homographies=homographies,
+        rms=float(np.sqrt(np.mean(res**2) * 2.0)),
+        pair_rms=np.asarray(pair_rms),
+        rms_undistorted_model=float(np.sqrt(np.mean(zero**2) * 2.0)),
+        curve_coefficients=None if curve is None else x[:n_dist].copy(),
+        converged=bool(result.success),
+        message=str(result.message),
+    )
+
+
+def _covariance(J: Array, res: Array) -> Array:
+    """Gauss-Newton covariance sigma^2 (J^T J)^+ (J may be sparse; J^T J is formed sparse)."""
+    JtJ = J.T @ J
+    JtJ = JtJ.toarray() if hasattr(JtJ, "toarray") else np.asarray(JtJ)
+    dof = max(len(res) - JtJ.shape[0], 1)
+    sigma2 = float(res @ res) / dof
+    return np.linalg.pinv(JtJ) * sigma2
+
+
+def _lambda_sigmas(
+    J: Array, res: Array, n_dist: int, is_curve: bool, n_kf: int, matches: Sequence[KeyframeMatch]
+) -> Array:
+    if is_curve:
+        return np.full(n_kf, np.nan)
+    cov = _covariance(J, res)
+    sigma = np.sqrt(np.maximum(np.diag(cov)[:n_dist], 0.0))
+    seen = np.zeros(n_kf, dtype=bool)
+    for m in matches:
+        seen[[m.i, m.j]] = True
+    return np.where(seen, sigma, np.inf)
+
+
+def _curve_lambda_sigmas(
+    J: Array, res: Array, n_dist: int, focals: Array, curve: DistortionVsFocal, coeffs: Array
+) -> Array:
+    cov = _covariance(J, res)[:n_dist, :n_dist]
+    assert curve.f_ref is not None
+    u = curve.f_ref / focals
+    V = np.vander(u, n_dist, increasing=True)
+    sigma_s = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", V, cov, V), 0.0))
+    s = V @ coeffs
+    rho2 = (curve.half_diagonal / focals) ** 2
+    return sigma_s / ((1.0 + s) ** 2 * rho2)  # |d lam / d s| = 1 / ((1 + s)^2 rho^2)
+
+
+def estimate_pair_distortion(
+    pts_i: ArrayLike,
+    pts_j: ArrayLike,
+    centre: ArrayLike,
+    f_i: float,
+    f_j: float,
+    lam0: tuple[float, float] = (0.0, 0.0),
+    loss: str = "soft_l1",
+    f_scale_px: float = 2.0,
+) -> PairDistortion:
+    """Division coefficients of two keyframes jointly with their homography (symmetric transfer error).
+
+    centre: (2,) shared or (2, 2) per-keyframe distortion centre. Returns lam_i, lam_j, H (undistorted
+    pixels of i -> undistorted pixels of j) and the rms transfer distance in pixels.
+    """
+    c_i, c_j = _centre_pair(centre)
+    match = KeyframeMatch(0, 1, np.asarray(pts_i, dtype=float), np.asarray(pts_j, dtype=float))
+    out = estimate_keyframe_distortion(
+        [match],
+        [f_i, f_j],
+        np.stack([c_i, c_j]),
+        lam0=np.asarray(lam0, dtype=float),
+        loss=loss,
+        f_scale_px=f_scale_px,
+    )
+    return PairDistortion(
+        float(out.lam[0]), float(out.lam[1]), out.homographies[0], out.rms, *map(float, out.sigma_lam)
+    )

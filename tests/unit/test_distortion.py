@@ -1,0 +1,269 @@
+"""Radial distortion models, the plumb_bob conversion, the metric and estimation from image data alone."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from ptz_selfcal.core.distortion import (
+    division_corner_shift,
+    division_distort,
+    division_lambda_for_corner_shift,
+    division_to_plumb_bob,
+    division_to_plumb_bob_fit,
+    division_undistort,
+    half_diagonal,
+    max_distortion_difference,
+    plumb_bob_distort,
+    plumb_bob_undistort,
+    radial_displacement,
+)
+from ptz_selfcal.core.distortion_estimation import (
+    DistortionVsFocal,
+    KeyframeMatch,
+    estimate_keyframe_distortion,
+    estimate_pair_distortion,
+    rescale_lambda,
+)
+from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+
+W, H = 1280, 720
+CENTRE = np.array([639.5, 359.5])
+F_WIDE = 1108.0  # 60 degrees horizontal field of view
+
+
+def lam_true(f: float) -> float:
+    """The issue's lens: 12% corner shift at the widest zoom, shrinking as 1/f."""
+    return division_lambda_for_corner_shift(0.12 * F_WIDE / f, W, H, f)
+
+
+def no_distortion(f: float) -> float:
+    return 0.0
+
+
+def division_error(lam_est: float, lam: float, f: float) -> float:
+    K = intrinsic_matrix(f, *CENTRE)
+    return max_distortion_difference(("division", (lam_est,), K), ("division", (lam,), K), W, H)
+
+
+def synthetic_pair(f_i, f_j, pan_tilt_i, pan_tilt_j, lam=lam_true, n=300, noise=0.0, seed=0):
+    """Distorted pixels of the same rays in two keyframes: exact K, R and division model."""
+    rng = np.random.default_rng(seed)
+    K_i, K_j = intrinsic_matrix(f_i, *CENTRE), intrinsic_matrix(f_j, *CENTRE)
+    R_i, R_j = ptz_rotation(*pan_tilt_i), ptz_rotation(*pan_tilt_j)
+    u = rng.uniform([-250.0, -250.0], [W + 250.0, H + 250.0], (20 * n, 2))
+    rays = (R_i.T @ np.linalg.inv(K_i) @ np.column_stack([u, np.ones(len(u))]).T).T
+    out = []
+    for K, R, f in ((K_i, R_i, f_i), (K_j, R_j, f_j)):
+        x = (K @ R @ rays.T).T
+        pix = division_distort(x[:, :2] / x[:, 2:3], lam(f), CENTRE, f)
+        out.append(
+            (x[:, 2] > 0) & np.all((pix >= 0) & (pix <= [W - 1, H - 1]), axis=1) & ~np.isnan(pix[:, 0])
+        )
+        out.append(pix)
+    keep = out[0] & out[2]
+    d_i, d_j = out[1][keep][:n], out[3][keep][:n]
+    return d_i + rng.normal(0.0, noise, d_i.shape), d_j + rng.normal(0.0, noise, d_j.shape)
+
+
+def zoom_sequence(n_kf=8, noise=0.3, seed=1, lam=lam_true):
+    """Keyframes zooming 1x -> 3x while panning by ~30% of the field of view, matched to the next two."""
+    f = F_WIDE * 3.0 ** (np.arange(n_kf) / (n_kf - 1))
+    pan, tilt = np.zeros(n_kf), np.zeros(n_kf)
+    for k in range(1, n_kf):
+        fov = 2.0 * np.arctan(640.0 / f[k])
+        pan[k] = pan[k - 1] + 0.3 * fov * (1.0 if k % 2 else -0.5)
+        tilt[k] = 0.1 * fov * np.sin(k)
+    matches = []
+    for i in range(n_kf):
+        for j in (i + 1, i + 2):
+            if j < n_kf:
+                d_i, d_j = synthetic_pair(
+                    f[i],
+                    f[j],
+                    (pan[i], tilt[i]),
+                    (pan[j], tilt[j]),
+                    lam,
+                    noise=noise,
+                    seed=100 * seed + 10 * i + j,
+                )
+                matches.append(KeyframeMatch(i, j, d_i, d_j))
+    return f, matches
+
+
+# ------------------------------------------------------------------------------------------------
+# Models
+# ------------------------------------------------------------------------------------------------
+def test_division_round_trip_and_barrel_sign():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([0, 0], [W - 1, H - 1], (2000, 2))
+    lam = lam_true(F_WIDE)
+    assert lam < 0.0
+    und = division_undistort(pts, lam, CENTRE, F_WIDE)
+    np.testing.assert_allclose(division_distort(und, lam, CENTRE, F_WIDE), pts, atol=1e-9)
+    # barrel: undistortion pushes every point outwards
+    grow = np.linalg.norm(und - CENTRE, axis=1) - np.linalg.norm(pts - CENTRE, axis=1)
+    assert np.all(grow >= -1e-12) and grow.max() > 50.0
+    np.testing.assert_allclose(division_undistort(pts, 0.0, CENTRE, F_WIDE), pts)
+
+
+def test_corner_shift_helper_is_exact_and_scales_with_field_of_view():
+    for f, shift in ((F_WIDE, 0.12), (2.0 * F_WIDE, 0.06), (F_WIDE, -0.03)):
+        lam = division_lambda_for_corner_shift(shift, W, H, f)
+        corner = division_undistort([[0.0, 0.0]], lam, CENTRE, f)[0]
+        assert np.linalg.norm(corner - CENTRE) == pytest.approx((1 + shift) * half_diagonal(W, H), rel=1e-12)
+        assert division_corner_shift(lam, W, H, f) == pytest.approx(shift, rel=1e-12)
+    # fixed (small) lam: the corner displacement scales as 1/f^2 (normalised-radius convention)
+    lam = -0.01
+    s1 = division_corner_shift(lam, W, H, F_WIDE)
+    s2 = division_corner_shift(lam, W, H, 2 * F_WIDE)
+    assert s2 / s1 == pytest.approx(0.25, rel=0.05)
+
+
+def test_plumb_bob_round_trip_matches_opencv():
+    K = intrinsic_matrix(900.0, 630.0, 365.0)
+    k1, k2 = -0.21, 0.05
+    pts = np.random.default_rng(1).uniform([0, 0], [W - 1, H - 1], (500, 2))
+    dist = plumb_bob_distort(pts, k1, k2, K)
+    # against OpenCV's projectPoints (the forward model)
+    rays = np.column_stack([(pts - K[:2, 2]) / 900.0, np.ones(len(pts))])
+    cv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, np.array([k1, k2, 0, 0, 0.0]))
+    np.testing.assert_allclose(dist, cv.reshape(-1, 2), atol=1e-8)
+    np.testing.assert_allclose(plumb_bob_undistort(dist, k1, k2, K), pts, atol=1e-8)
+    np.testing.assert_allclose(plumb_bob_undistort(dist, k1, k2, K, use_opencv=True), pts, atol=1e-4)
+
+
+@pytest.mark.parametrize("f, bound_px", [(F_WIDE, 0.25), (2 * F_WIDE, 0.05), (3 * F_WIDE, 0.02)])
+def test_division_to_plumb_bob_consistent_with_opencv_undistortion(f, bound_px):
+    lam = lam_true(f)
+    K = intrinsic_matrix(f, *CENTRE)
+    fit = division_to_plumb_bob_fit(lam, K, W, H)
+    assert (fit.k1, fit.k2) == division_to_plumb_bob(lam, K, W, H)
+    assert fit.k1 < 0.0 and fit.max_px < bound_px
+    pts = np.random.default_rng(2).uniform([0, 0], [W - 1, H - 1], (3000, 2))
+    pts = np.vstack([pts, [[0, 0], [W - 1, H - 1], [0, H - 1], [W - 1, 0]]])
+    D = np.array([fit.k1, fit.k2, 0.0, 0.0, 0.0])
+    cv = cv2.undistortPoints(pts.reshape(-1, 1, 2), K, D, None, None, K).reshape(-1, 2)
+    err = np.linalg.norm(cv - division_undistort(pts, lam, CENTRE, f), axis=1)
+    assert err.max() < bound_px
+    # the same with the project's own exact inversion
+    err = np.linalg.norm(
+        plumb_bob_undistort(pts, fit.k1, fit.k2, K) - division_undistort(pts, lam, CENTRE, f), axis=1
+    )
+    assert err.max() < bound_px
+
+
+def test_no_distortion_converts_to_zero_plumb_bob():
+    k1, k2 = division_to_plumb_bob(0.0, intrinsic_matrix(F_WIDE, *CENTRE), W, H)
+    assert abs(k1) < 1e-12 and abs(k2) < 1e-12
+
+
+def test_metric_known_values_and_principal_point_excluded():
+    f = F_WIDE
+    lam = lam_true(f)
+    K = intrinsic_matrix(f, *CENTRE)
+    corner_shift = 0.12 * half_diagonal(W, H)
+    # estimating "no distortion" misses the full corner displacement
+    assert max_distortion_difference(
+        ("plumb_bob", (0.0, 0.0), K), ("division", (lam,), K), W, H
+    ) == pytest.approx(corner_shift, rel=1e-6)
+    # a shifted principal point alone is not a distortion error
+    K_off = intrinsic_matrix(f, CENTRE[0] + 7.0, CENTRE[1] - 4.0)
+    assert max_distortion_difference(("division", (lam,), K_off), ("division", (lam,), K), W, H) < 1e-9
+    # plumb_bob estimate against division truth (the calibrator's output against the renderer's model)
+    k1, k2 = division_to_plumb_bob(lam, K, W, H)
+    assert max_distortion_difference(("plumb_bob", (k1, k2), K), ("division", (lam,), K), W, H) < 0.25
+    radii = np.array([0.0, 100.0, 400.0])
+    disp = radial_displacement("division", (lam,), K, radii)
+    assert disp[0] == 0.0 and 0.0 < disp[1] < disp[2]
+
+
+# ------------------------------------------------------------------------------------------------
+# Estimation from correspondences
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "f_i, f_j, pan", [(F_WIDE, F_WIDE, 0.3), (F_WIDE, 1.35 * F_WIDE, 0.3), (2.0 * F_WIDE, 2.4 * F_WIDE, 0.15)]
+)
+def test_pair_distortion_recovered_exactly(f_i, f_j, pan):
+    d_i, d_j = synthetic_pair(f_i, f_j, (0.0, 0.0), (pan, 0.05))
+    est = estimate_pair_distortion(d_i, d_j, CENTRE, f_i, f_j)
+    assert est.lam_i == pytest.approx(lam_true(f_i), rel=1e-6)
+    assert est.lam_j == pytest.approx(lam_true(f_j), rel=1e-6)
+    assert est.rms < 1e-6
+    # the returned homography is the infinite homography between undistorted pixels (eq. 8)
+    R_ij = ptz_rotation(pan, 0.05) @ ptz_rotation(0.0, 0.0).T
+    H_true = intrinsic_matrix(f_j, *CENTRE) @ R_ij @ np.linalg.inv(intrinsic_matrix(f_i, *CENTRE))
+    np.testing.assert_allclose(est.H, H_true / H_true[2, 2], rtol=1e-6, atol=1e-9)
+
+
+def test_pair_distortion_with_noise_consistent_with_its_uncertainty():
+    f_i, f_j = F_WIDE, 1.35 * F_WIDE
+    d_i, d_j = synthetic_pair(f_i, f_j, (0.0, 0.0), (0.3, 0.05), noise=0.3, seed=3)
+    est = estimate_pair_distortion(d_i, d_j, CENTRE, f_i, f_j)
+    # one pair of 300 points at 0.3 px is a weak constraint (~0.6 px 1-sigma at the wide end)
+    assert abs(est.lam_i - lam_true(f_i)) < 3.0 * est.sigma_lam_i
+    assert abs(est.lam_j - lam_true(f_j)) < 3.0 * est.sigma_lam_j
+    assert division_error(est.lam_i, lam_true(f_i), f_i) < 2.0
+    assert division_error(est.lam_j, lam_true(f_j), f_j) < 2.0
+    assert 0.45 < est.rms < 0.75  # symmetric transfer of 0.3 px noise in both images ~ 0.6 px
+    assert 0.0 < est.sigma_lam_i < 0.005
+
+
+def test_no_distortion_gives_zero_lambda_and_zero_k1():
+    d_i, d_j = synthetic_pair(
+        F_WIDE, 1.3 * F_WIDE, (0.0, 0.0), (0.3, 0.05), lam=no_distortion, noise=0.2, seed=4
+    )
+    est = estimate_pair_distortion(d_i, d_j, CENTRE, F_WIDE, 1.3 * F_WIDE)
+    K = intrinsic_matrix(F_WIDE, *CENTRE)
+    k1, _ = division_to_plumb_bob(est.lam_i, K, W, H)
+    assert abs(est.lam_i) < 0.01 and abs(est.lam_j) < 0.01
+    assert abs(k1) < 0.01  # the issue's lens has k1 ~ -0.24 here
+    assert division_error(est.lam_i, 0.0, F_WIDE) < 1.0
+
+
+def test_keyframe_distortion_while_zooming_per_keyframe_and_curve():
+    f, matches = zoom_sequence(noise=0.3)
+    per_kf = estimate_keyframe_distortion(matches, f, CENTRE)
+    errors = [division_error(lam, lam_true(fk), fk) for lam, fk in zip(per_kf.lam, f)]
+    assert np.median(errors) < 0.5 and max(errors) < 1.0
+    assert per_kf.rms < 0.7 < 2.0 < per_kf.rms_undistorted_model  # correction removes the model error
+    assert np.all(np.isfinite(per_kf.sigma_lam)) and np.all(per_kf.sigma_lam > 0)
+    # the curve-constrained estimate (lam tied through DistortionVsFocal) is as good or better
+    tied = estimate_keyframe_distortion(matches, f, CENTRE, curve=DistortionVsFocal(W, H))
+    errors_tied = [division_error(lam, lam_true(fk), fk) for lam, fk in zip(tied.lam, f)]
+    assert max(errors_tied) < 0.5
+    assert tied.curve_coefficients is not None
+
+
+def test_wrong_nominal_focal_is_absorbed_by_rescaling():
+    f, matches = zoom_sequence(n_kf=4, noise=0.0)
+    est = estimate_keyframe_distortion(matches, 1.15 * f, CENTRE)
+    for lam, fk in zip(est.lam, f):
+        assert rescale_lambda(lam, 1.15 * fk, fk) == pytest.approx(lam_true(fk), rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------
+# Distortion versus focal length
+# ------------------------------------------------------------------------------------------------
+def test_distortion_vs_focal_robust_fit_and_extrapolation():
+    rng = np.random.default_rng(5)
+    f = F_WIDE * rng.uniform(1.0, 3.0, 60)
+    curve = DistortionVsFocal(W, H)
+    true_shift = curve.shift_from_lambda(f, [lam_true(x) for x in f])
+    shift = true_shift + rng.normal(0.0, 0.3 / half_diagonal(W, H), len(f))  # 0.3 px corner noise
+    shift[:5] += 0.02  # five bad keyframes (15 px)
+    curve.fit(f, curve.lambda_from_shift(f, shift))
+    grid = np.linspace(F_WIDE, 3 * F_WIDE, 50)
+    errors = [division_error(curve.predict(x), lam_true(x), x) for x in grid]
+    assert max(errors) < 0.3
+    assert curve.in_range(2 * F_WIDE) and not curve.in_range(4 * F_WIDE)
+    # beyond the fitted range the corner shift fades as 1/f, never the polynomial
+    assert curve.predict_shift(6 * F_WIDE) == pytest.approx(curve.predict_shift(3 * F_WIDE) / 2.0, rel=0.02)
+    assert division_error(float(curve.predict(6 * F_WIDE)), lam_true(6 * F_WIDE), 6 * F_WIDE) < 0.3
+
+
+def test_distortion_vs_focal_reduces_degree_on_a_narrow_range():
+    f = np.array([F_WIDE, F_WIDE * 1.02, F_WIDE * 1.04])
+    curve = DistortionVsFocal(W, H).fit(f, [lam_true(x) for x in f])
+    assert curve.coefficients is not None and curve.coefficients[2] == 0.0
+    assert division_error(float(curve.predict(F_WIDE * 1.02)), lam_true(F_WIDE * 1.02), F_WIDE * 1.02) < 0.2
