@@ -1,0 +1,204 @@
+"""Image measurements for the homography tracker (paper sections 2.2 and 4.2).
+
+Corner detection spread over a grid, pyramidal KLT with a forward-backward check, ORB descriptors and
+robust homography estimation (USAC/MAGSAC, seeded) followed by Levenberg-Marquardt on the inliers.
+All coordinates here are working-resolution pixels; the tracker converts to full resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ptz_selfcal.core.geometry import apply_homography
+from ptz_selfcal.core.homography import refine_homography
+
+Array = NDArray[np.float64]
+Points = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class KltParams:
+    window: int = 15
+    levels: int = 3
+    iterations: int = 10
+    epsilon: float = 0.03
+    fb_threshold: float = 0.5  # forward-backward disagreement allowed, working pixels
+    min_eigenvalue: float = 1e-4  # OpenCV's normalised minimum eigenvalue of the KLT window
+
+
+def detect_corners(
+    image: np.ndarray,
+    max_corners: int,
+    grid: tuple[int, int],
+    quality_level: float,
+    min_distance: float,
+    min_eigenvalue: float,
+    mask: np.ndarray | None = None,
+) -> Points:
+    """Shi-Tomasi corners spread over a cols x rows grid, strongest first within each cell.
+
+    `min_eigenvalue` is an absolute floor (OpenCV's normalised minimum eigenvalue, blockSize 3) so a
+    flat or black image yields no corners instead of amplified noise.
+    """
+    eig = cv2.cornerMinEigenVal(image, 3, 3)
+    peak = float(eig.max()) if eig.size else 0.0
+    if peak <= min_eigenvalue:
+        return np.empty((0, 2), np.float32)
+    quality = max(quality_level, min_eigenvalue / peak)
+    found = cv2.goodFeaturesToTrack(image, 4 * max_corners, quality, min_distance, mask=mask, blockSize=3)
+    if found is None:
+        return np.empty((0, 2), np.float32)
+    corners = found.reshape(-1, 2).astype(np.float32)
+    return _spread_over_grid(corners, image.shape[1], image.shape[0], max_corners, grid)
+
+
+def _spread_over_grid(corners: Points, width: int, height: int, count: int, grid: tuple[int, int]) -> Points:
+    """Keep the strongest corners of every grid cell first (corners arrive sorted by strength)."""
+    cols, rows = grid
+    cx = np.minimum((corners[:, 0] * cols / width).astype(int), cols - 1)
+    cy = np.minimum((corners[:, 1] * rows / height).astype(int), rows - 1)
+    cell = cy * cols + cx
+    order = np.argsort(cell, kind="stable")
+    first = np.searchsorted(cell[order], cell[order], side="left")
+    rank = np.empty(len(cell), int)
+    rank[order] = np.arange(len(cell)) - first
+    # Round-robin over cells: rank 0 of every cell, then rank 1, ...; strength breaks ties.
+    keep = np.lexsort((np.arange(len(cell)), rank))[:count]
+    return corners[np.sort(keep)]
+
+
+def track_klt(
+    previous: np.ndarray,
+    current: np.ndarray,
+    points: Points,
+    params: KltParams,
+    initial: Points | None = None,
+    levels: int | None = None,
+) -> tuple[Points, NDArray[np.bool_]]:
+    """Pyramidal KLT previous -> current with a forward-backward check; returns positions and validity."""
+    if len(points) == 0:
+        return np.empty((0, 2), np.float32), np.zeros(0, bool)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon)
+    win = (params.window, params.window)
+    p0 = np.ascontiguousarray(points, np.float32).reshape(-1, 1, 2)
+    flags = 0
+    guess = None
+    if initial is not None:
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        guess = np.ascontiguousarray(initial, np.float32).reshape(-1, 1, 2).copy()
+    max_level = params.levels if levels is None else levels
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(
+        previous, current, p0, guess, winSize=win, maxLevel=max_level, criteria=criteria, flags=flags,
+        minEigThreshold=params.min_eigenvalue,
+    )  # fmt: skip
+    # Backward pass from the forward result, seeded at the start point: a cheap consistency test.
+    back, st_back, _ = cv2.calcOpticalFlowPyrLK(
+        current, previous, p1, p0.copy(), winSize=win, maxLevel=1, criteria=criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW, minEigThreshold=params.min_eigenvalue,
+    )  # fmt: skip
+    p1 = p1.reshape(-1, 2)
+    fb = np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+    h, w = current.shape[:2]
+    inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
+    ok = (st.ravel() == 1) & (st_back.ravel() == 1) & (fb < params.fb_threshold) & inside
+    return p1, ok
+
+
+@dataclass(frozen=True)
+class RobustFit:
+    H: Array  # maps src to dst
+    inliers: NDArray[np.bool_]
+    rms: float  # rms transfer error of the inliers, same units as the points
+
+
+def usac_params(threshold: float, seed: int, max_iterations: int, confidence: float) -> cv2.UsacParams:
+    """Settings of OpenCV's USAC_MAGSAC preset with an explicit random state (deterministic)."""
+    params = cv2.UsacParams()
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MAGSAC
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.loIterations = 10
+    params.loSampleSize = 75
+    params.final_polisher = cv2.MAGSAC
+    params.final_polisher_iterations = 10
+    params.threshold = threshold
+    params.confidence = confidence
+    params.maxIterations = max_iterations
+    params.randomGeneratorState = seed
+    params.isParallel = False
+    return params
+
+
+def robust_homography(
+    src: np.ndarray,
+    dst: np.ndarray,
+    params: cv2.UsacParams,
+    min_inliers: int,
+    refine_iterations: int = 20,
+) -> RobustFit | None:
+    """MAGSAC homography src -> dst, then LM on the transfer error of the inliers (section 4.2)."""
+    if len(src) < max(min_inliers, 4):
+        return None
+    src64 = np.asarray(src, np.float64).reshape(-1, 2)
+    dst64 = np.asarray(dst, np.float64).reshape(-1, 2)
+    try:
+        H, mask = cv2.findHomography(src64, dst64, params)
+    except cv2.error:
+        return None
+    if H is None or H.size == 0 or mask is None:
+        return None
+    inliers = mask.ravel().astype(bool)
+    if inliers.sum() < min_inliers:
+        return None
+    threshold = params.threshold
+    for _ in range(2):
+        H = refine_homography(H, src64[inliers], dst64[inliers], max_nfev=refine_iterations)
+        residual = np.linalg.norm(apply_homography(H, src64) - dst64, axis=1)
+        updated = residual < threshold
+        if updated.sum() < min_inliers:
+            return None
+        if np.array_equal(updated, inliers):
+            break
+        inliers = updated
+    rms = float(np.sqrt(np.mean(residual[inliers] ** 2)))
+    return RobustFit(H=H, inliers=inliers, rms=rms)
+
+
+@dataclass(frozen=True)
+class Descriptors:
+    points: Points  # (N, 2) keypoint positions, working pixels
+    descriptors: np.ndarray | None  # (N, 32) uint8 ORB descriptors
+
+
+def orb_descriptors(orb: cv2.ORB, image: np.ndarray) -> Descriptors:
+    keypoints, descriptors = orb.detectAndCompute(image, None)
+    points = np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2)
+    return Descriptors(points=points, descriptors=descriptors)
+
+
+def match_descriptors(a: Descriptors, b: Descriptors, ratio: float) -> tuple[Points, Points]:
+    """Mutual nearest neighbours in Hamming distance passing Lowe's ratio test: (points in a, in b)."""
+    empty = (np.empty((0, 2), np.float32), np.empty((0, 2), np.float32))
+    if a.descriptors is None or b.descriptors is None or len(a.points) < 2 or len(b.points) < 2:
+        return empty
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    forward = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
+    backward = matcher.match(b.descriptors, a.descriptors)
+    best_back = np.full(len(b.points), -1)
+    for m in backward:
+        best_back[m.queryIdx] = m.trainIdx
+    ia, ib = [], []
+    for pair in forward:
+        if len(pair) < 2:
+            continue
+        m, n = pair
+        if m.distance < ratio * n.distance and best_back[m.trainIdx] == m.queryIdx:
+            ia.append(m.queryIdx)
+            ib.append(m.trainIdx)
+    if not ia:
+        return empty
+    return a.points[ia], b.points[ib]

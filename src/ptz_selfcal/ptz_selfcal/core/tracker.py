@@ -1,0 +1,474 @@
+"""Keyframe-based homography tracker for a rotating and zooming camera (paper sections 2.2 and 4.2).
+
+Every frame: pyramidal KLT frame to frame at the working resolution; each track remembers its position
+in the current keyframe, so the keyframe -> frame infinite homography is fitted to measured positions
+(USAC/MAGSAC, then LM on the inliers). A new keyframe is made when overlap, scale or the surviving
+tracks drop; it is linked to the previous keyframe and to older overlapping ones by descriptor
+re-matching plus a photometric KLT refinement, and its reference -> keyframe homography is chained
+through the link nearest to the reference (fewest hops), so drift does not grow without bound when the
+camera comes back. After a loss, ORB matching against the stored keyframes relocalises the camera.
+Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ptz_selfcal.core.features import (
+    Descriptors,
+    KltParams,
+    RobustFit,
+    detect_corners,
+    match_descriptors,
+    orb_descriptors,
+    robust_homography,
+    track_klt,
+    usac_params,
+)
+from ptz_selfcal.core.geometry import apply_homography, homography_work_to_full, work_from_full
+
+Array = NDArray[np.float64]
+Points = NDArray[np.float32]
+
+_LOG = logging.getLogger(__name__)
+
+
+class TrackingState(StrEnum):
+    TRACKING = "TRACKING"
+    NEW_KEYFRAME = "NEW_KEYFRAME"
+    RELOCALISED = "RELOCALISED"
+    TRACKING_LOST = "TRACKING_LOST"
+    TEXTURELESS = "TEXTURELESS"
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    working_scale: float = 0.5  # working / full resolution the node should downscale to
+    max_features: int = 300
+    grid: tuple[int, int] = (8, 5)  # (cols, rows) cells that spread the corners over the image
+    quality_level: float = 0.01
+    min_distance: float = 8.0  # working pixels between corners
+    min_corner_eigenvalue: float = 2e-4  # absolute texture floor (OpenCV normalised eigenvalue)
+    klt_window: int = 15
+    klt_levels: int = 3
+    klt_iterations: int = 10
+    klt_fb_threshold: float = 0.5  # working pixels
+    ransac_threshold: float = 2.0  # full-resolution pixels
+    ransac_max_iterations: int = 1000
+    ransac_confidence: float = 0.999
+    refine_iterations: int = 20
+    min_inliers: int = 20
+    min_inlier_ratio: float = 0.25
+    textured_min_corners: int = 30  # fewer detectable corners than this -> TEXTURELESS
+    keyframe_min_overlap: float = 0.7  # fraction of the frame still covered by the keyframe
+    keyframe_max_scale_change: float = 1.2
+    keyframe_min_track_fraction: float = 0.5
+    link_min_overlap: float = 0.5  # older keyframes overlapping this much are link candidates
+    link_candidates: int = 2  # older keyframes re-matched per new keyframe (besides the previous one)
+    max_keyframes: int = 64  # keyframe store cap (oldest pruned; the reference is kept)
+    orb_features: int = 800
+    descriptor_ratio: float = 0.8
+    relocalise_candidates: int = 6  # keyframes tried per lost frame
+    new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
+    gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class KeyframeLink:
+    """Keyframe -> keyframe homography and its inlier correspondences, full-resolution pixels."""
+
+    source_id: int
+    target_id: int
+    H: Array  # maps source keyframe pixels to target keyframe pixels
+    source_points: Array  # (N, 2)
+    target_points: Array  # (N, 2)
+    rms_transfer_error: float
+
+    @property
+    def inlier_count(self) -> int:
+        return len(self.source_points)
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    state: TrackingState
+    frame_index: int
+    stamp: float | None
+    H_ref: Array | None  # reference keyframe -> current frame, full resolution (None when lost)
+    H_keyframe: Array | None  # keyframe -> current frame, full resolution
+    keyframe_id: int | None
+    reference_id: int | None
+    inlier_count: int
+    match_count: int
+    rms_transfer_error: float  # full-resolution pixels
+    links: tuple[KeyframeLink, ...] = ()  # for NEW_KEYFRAME / RELOCALISED: links of the new keyframe
+
+
+@dataclass
+class Keyframe:
+    id: int  # frame index of the keyframe
+    stamp: float | None
+    image: np.ndarray  # working resolution, mono8
+    H_ref: Array  # reference -> keyframe, full resolution
+    depth: int  # keyframe links between the reference and this keyframe
+    corners: Points  # corners detected in the keyframe (working pixels)
+    descriptors: Descriptors
+
+
+@dataclass
+class _Tracks:
+    current: Points = field(default_factory=lambda: np.empty((0, 2), np.float32))
+    in_keyframe: Points = field(default_factory=lambda: np.empty((0, 2), np.float32))
+    initial_count: int = 0
+
+
+class HomographyTracker:
+    """Frame-by-frame infinite-homography tracker; see the module docstring."""
+
+    def __init__(self, config: TrackerConfig | None = None) -> None:
+        self.config = config or TrackerConfig()
+        c = self.config
+        self._klt = KltParams(window=c.klt_window, levels=c.klt_levels, iterations=c.klt_iterations,
+                              fb_threshold=c.klt_fb_threshold)  # fmt: skip
+        self._orb = cv2.ORB_create(nfeatures=c.orb_features, scaleFactor=1.2, nlevels=8, fastThreshold=10)
+        self.reset()
+
+    # ------------------------------------------------------------------ public API
+    def reset(self) -> None:
+        self._keyframes: OrderedDict[int, Keyframe] = OrderedDict()
+        self._reference_id: int | None = None
+        self._keyframe_id: int | None = None
+        self._tracks = _Tracks()
+        self._previous: np.ndarray | None = None
+        self._scale: float | None = None
+        self._frame_index = -1
+        self._lost_frames = 0
+        self._lost = False
+
+    def keyframes(self) -> dict[int, Array]:
+        """Stored keyframes of the current map: id -> H (reference -> keyframe, full resolution)."""
+        return {k: kf.H_ref.copy() for k, kf in self._keyframes.items()}
+
+    @property
+    def reference_id(self) -> int | None:
+        return self._reference_id
+
+    def track(self, image_work: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
+        """Process one mono8 working-resolution frame; `scale` = working / full resolution."""
+        image = np.ascontiguousarray(image_work, np.uint8)
+        if image.ndim != 2:
+            raise ValueError("the tracker expects a single-channel (mono8) image")
+        if self._scale is not None and abs(scale - self._scale) > 1e-12:
+            _LOG.info("working scale changed from %s to %s: tracker reset", self._scale, scale)
+            self.reset()
+        self._scale = scale
+        self._frame_index += 1
+        if self._reference_id is None:
+            result = self._start_map(image, stamp)
+        elif self._lost:
+            result = self._relocalise(image, stamp)
+        else:
+            result = self._track_frame(image, stamp)
+        self._previous = image
+        return result
+
+    # ------------------------------------------------------------------ per-frame tracking
+    def _track_frame(self, image: np.ndarray, stamp: float | None) -> TrackResult:
+        c = self.config
+        keyframe = self._keyframes[self._keyframe_id]
+        previous = self._gain_matched(self._previous, image)
+        current, ok = track_klt(previous, image, self._tracks.current, self._klt)
+        match_count = int(ok.sum())
+        fit = None
+        if match_count >= c.min_inliers:
+            fit = robust_homography(self._tracks.in_keyframe[ok], current[ok], self._usac(), c.min_inliers,
+                                    c.refine_iterations)  # fmt: skip
+        if fit is None or fit.inliers.sum() < c.min_inlier_ratio * max(match_count, 1):
+            return self._lose(image, stamp, match_count)
+        keep = np.flatnonzero(ok)[fit.inliers]
+        self._tracks.current = current[keep]
+        self._tracks.in_keyframe = self._tracks.in_keyframe[keep]
+        H_keyframe = homography_work_to_full(fit.H, self._scale)
+        H_ref = H_keyframe @ keyframe.H_ref
+        inlier_count = int(fit.inliers.sum())
+        if self._needs_keyframe(fit.H, inlier_count, image.shape):
+            return self._new_keyframe(image, stamp, keyframe, fit, match_count)
+        return TrackResult(
+            state=TrackingState.TRACKING, frame_index=self._frame_index, stamp=stamp,
+            H_ref=H_ref, H_keyframe=H_keyframe, keyframe_id=keyframe.id, reference_id=self._reference_id,
+            inlier_count=inlier_count, match_count=match_count, rms_transfer_error=fit.rms / self._scale,
+        )  # fmt: skip
+
+    def _gain_matched(self, previous: np.ndarray, image: np.ndarray) -> np.ndarray:
+        """Previous frame rescaled to the current mean brightness (KLT assumes constant brightness)."""
+        if not self.config.gain_compensation:
+            return previous
+        mean_prev = float(cv2.mean(previous)[0])
+        mean_cur = float(cv2.mean(image)[0])
+        if mean_prev < 1.0 or abs(mean_cur / mean_prev - 1.0) < 0.02:
+            return previous
+        return cv2.convertScaleAbs(previous, alpha=mean_cur / mean_prev)
+
+    def _needs_keyframe(self, H_work: Array, inlier_count: int, shape: tuple[int, ...]) -> bool:
+        c = self.config
+        if inlier_count < c.keyframe_min_track_fraction * self._tracks.initial_count:
+            return True
+        scale_change = _local_scale(H_work, shape)
+        if max(scale_change, 1.0 / scale_change) > c.keyframe_max_scale_change:
+            return True
+        return _overlap(np.linalg.inv(H_work), shape) < c.keyframe_min_overlap
+
+    # ------------------------------------------------------------------ keyframes
+    def _start_map(self, image: np.ndarray, stamp: float | None) -> TrackResult:
+        corners = self._detect(image)
+        if len(corners) < self.config.textured_min_corners:
+            return self._result(TrackingState.TEXTURELESS, stamp, 0)
+        self._keyframes.clear()
+        keyframe = self._add_keyframe(image, stamp, np.eye(3), 0, corners)
+        self._reference_id = keyframe.id
+        self._lost, self._lost_frames = False, 0
+        return TrackResult(
+            state=TrackingState.NEW_KEYFRAME, frame_index=self._frame_index, stamp=stamp, H_ref=np.eye(3),
+            H_keyframe=np.eye(3), keyframe_id=keyframe.id, reference_id=keyframe.id,
+            inlier_count=len(corners), match_count=len(corners), rms_transfer_error=0.0,
+        )  # fmt: skip
+
+    def _new_keyframe(
+        self, image: np.ndarray, stamp: float | None, parent: Keyframe, fit: RobustFit, match_count: int
+    ) -> TrackResult:
+        """Make the current frame a keyframe linked to its parent and to older overlapping keyframes."""
+        corners = self._detect(image)
+        if len(corners) < self.config.textured_min_corners:
+            # Too little texture left to start new tracks: keep the old keyframe while tracks last.
+            H_keyframe = homography_work_to_full(fit.H, self._scale)
+            return TrackResult(
+                state=TrackingState.TRACKING, frame_index=self._frame_index, stamp=stamp,
+                H_ref=H_keyframe @ parent.H_ref, H_keyframe=H_keyframe, keyframe_id=parent.id,
+                reference_id=self._reference_id, inlier_count=int(fit.inliers.sum()),
+                match_count=match_count, rms_transfer_error=fit.rms / self._scale,
+            )  # fmt: skip
+        descriptors = orb_descriptors(self._orb, image)
+        H_ref_guess = homography_work_to_full(fit.H, self._scale) @ parent.H_ref
+        guesses = [(parent, fit.H), *self._older_candidates(image, H_ref_guess, descriptors, parent.id)]
+        result = self._commit_keyframe(image, stamp, corners, descriptors, guesses,
+                                       TrackingState.NEW_KEYFRAME, fit, match_count)  # fmt: skip
+        assert result is not None  # the tracked fit is the fallback link
+        return result
+
+    def _older_candidates(
+        self, image: np.ndarray, H_ref_guess: Array, descriptors: Descriptors, exclude: int
+    ) -> list[tuple[Keyframe, Array]]:
+        """Older keyframes overlapping the new one, fewest hops to the reference first, with an
+        initial keyframe -> frame homography re-matched from descriptors (working pixels)."""
+        c = self.config
+        S = work_from_full(self._scale)
+        scored = []
+        for kf in self._keyframes.values():
+            if kf.id == exclude:
+                continue
+            H_work = S @ H_ref_guess @ np.linalg.inv(kf.H_ref) @ np.linalg.inv(S)
+            overlap = _overlap(np.linalg.inv(H_work), image.shape)
+            if overlap >= c.link_min_overlap:
+                scored.append((kf.depth, -overlap, kf.id, kf, H_work))
+        scored.sort(key=lambda s: s[:3])
+        out = []
+        for *_, kf, H_work in scored[: c.link_candidates]:
+            src, dst = match_descriptors(kf.descriptors, descriptors, c.descriptor_ratio)
+            fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
+            out.append((kf, fit.H if fit is not None else H_work))
+        return out
+
+    def _commit_keyframe(
+        self,
+        image: np.ndarray,
+        stamp: float | None,
+        corners: Points,
+        descriptors: Descriptors,
+        guesses: list[tuple[Keyframe, Array]],
+        state: TrackingState,
+        fit: RobustFit | None,
+        match_count: int,
+    ) -> TrackResult | None:
+        """Store the frame as a keyframe chained through its best link; None if no link holds."""
+        links, best = [], None
+        for kf, H0 in guesses:
+            refined = self._photometric_link(kf, image, corners, H0)
+            if refined is None:
+                continue
+            link_fit, src, dst = refined
+            link = self._make_link(kf, link_fit, src, dst)
+            links.append(link)
+            if best is None or (kf.depth, -link_fit.inliers.sum()) < (best[0].depth, -best[1].inliers.sum()):
+                best = (kf, link_fit, link)
+        if best is None:
+            if fit is None:
+                return None
+            best_parent, H_link = guesses[0][0], homography_work_to_full(fit.H, self._scale)
+            depth, rms, inliers = best_parent.depth + 1, fit.rms / self._scale, int(fit.inliers.sum())
+        else:
+            best_parent, H_link = best[0], best[2].H
+            depth, rms, inliers = best_parent.depth + 1, best[2].rms_transfer_error, best[2].inlier_count
+        H_ref = H_link @ best_parent.H_ref
+        keyframe = self._add_keyframe(image, stamp, H_ref, depth, corners, descriptors)
+        links = [replace(link, target_id=keyframe.id) for link in links]
+        self._lost, self._lost_frames = False, 0
+        return TrackResult(
+            state=state, frame_index=self._frame_index, stamp=stamp, H_ref=H_ref, H_keyframe=np.eye(3),
+            keyframe_id=keyframe.id, reference_id=self._reference_id, inlier_count=inliers,
+            match_count=match_count, rms_transfer_error=rms, links=tuple(links),
+        )  # fmt: skip
+
+    def _photometric_link(
+        self, kf: Keyframe, image: np.ndarray, corners: Points, H0: Array
+    ) -> tuple[RobustFit, Array, Array] | None:
+        """Refine keyframe -> frame H (working pixels): warp the keyframe by the guess H0, KLT the frame's
+        corners into the warped keyframe (small residual motion, no scale change) and map them back."""
+        c = self.config
+        h, w = image.shape
+        in_kf = apply_homography(np.linalg.inv(H0), corners)
+        margin = c.klt_window
+        kh, kw = kf.image.shape
+        visible = (
+            np.all(in_kf >= margin, axis=1)
+            & (in_kf[:, 0] <= kw - 1 - margin)
+            & (in_kf[:, 1] <= kh - 1 - margin)
+        )
+        if visible.sum() < c.min_inliers:
+            return None
+        warped = cv2.warpPerspective(kf.image, H0, (w, h), flags=cv2.INTER_LINEAR)
+        warped = self._gain_matched(warped, image)
+        pts = corners[visible]
+        found, ok = track_klt(image, warped, pts, self._klt, initial=pts, levels=2)
+        if ok.sum() < c.min_inliers:
+            return None
+        src = apply_homography(np.linalg.inv(H0), found[ok])
+        dst = pts[ok].astype(np.float64)
+        fit = robust_homography(src, dst, self._usac(), c.min_inliers, c.refine_iterations)
+        return None if fit is None else (fit, src[fit.inliers], dst[fit.inliers])
+
+    def _make_link(self, kf: Keyframe, fit: RobustFit, src: Array, dst: Array) -> KeyframeLink:
+        """Link keyframe -> (not yet stored) frame in full resolution; target id filled in later."""
+        s = self._scale
+        return KeyframeLink(
+            source_id=kf.id, target_id=-1, H=homography_work_to_full(fit.H, s),
+            source_points=(src + 0.5) / s - 0.5, target_points=(dst + 0.5) / s - 0.5,
+            rms_transfer_error=fit.rms / s,
+        )  # fmt: skip
+
+    def _add_keyframe(
+        self,
+        image: np.ndarray,
+        stamp: float | None,
+        H_ref: Array,
+        depth: int,
+        corners: Points,
+        descriptors: Descriptors | None = None,
+    ) -> Keyframe:
+        if descriptors is None:
+            descriptors = orb_descriptors(self._orb, image)
+        keyframe = Keyframe(self._frame_index, stamp, image, H_ref, depth, corners, descriptors)
+        self._keyframes[keyframe.id] = keyframe
+        self._keyframe_id = keyframe.id
+        self._tracks = _Tracks(current=corners.copy(), in_keyframe=corners.copy(), initial_count=len(corners))
+        self._prune()
+        return keyframe
+
+    def _prune(self) -> None:
+        """Bounded memory: drop the oldest keyframes beyond the cap, never the reference or current one."""
+        while len(self._keyframes) > self.config.max_keyframes:
+            victim = next(k for k in self._keyframes if k not in (self._reference_id, self._keyframe_id))
+            del self._keyframes[victim]
+
+    # ------------------------------------------------------------------ loss and relocalisation
+    def _lose(self, image: np.ndarray, stamp: float | None, match_count: int) -> TrackResult:
+        self._lost = True
+        return self._relocalise(image, stamp, match_count=match_count, just_lost=True)
+
+    def _relocalise(
+        self, image: np.ndarray, stamp: float | None, match_count: int = 0, just_lost: bool = False
+    ) -> TrackResult:
+        c = self.config
+        corners = self._detect(image)
+        if len(corners) < c.textured_min_corners:
+            return self._result(TrackingState.TEXTURELESS, stamp, match_count)
+        self._lost_frames += 1
+        descriptors = orb_descriptors(self._orb, image)
+        for kf in self._relocalisation_order()[: c.relocalise_candidates]:
+            src, dst = match_descriptors(kf.descriptors, descriptors, c.descriptor_ratio)
+            fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
+            if fit is None or not _plausible(fit.H, image.shape):
+                continue
+            result = self._commit_keyframe(image, stamp, corners, descriptors, [(kf, fit.H)],
+                                           TrackingState.RELOCALISED, None, len(src))  # fmt: skip
+            if result is not None:
+                return result
+        if self._lost_frames >= c.new_map_after_lost:
+            _LOG.info("relocalisation failed for %d frames: starting a new map", self._lost_frames)
+            self._reference_id = None
+            return self._start_map(image, stamp)
+        return self._result(TrackingState.TRACKING_LOST, stamp, match_count)
+
+    def _relocalisation_order(self) -> list[Keyframe]:
+        """The last tracked keyframe first, then the others from the newest."""
+        order = [self._keyframes[self._keyframe_id]] if self._keyframe_id in self._keyframes else []
+        order += [kf for k, kf in reversed(self._keyframes.items()) if k != self._keyframe_id]
+        return order
+
+    # ------------------------------------------------------------------ helpers
+    def _detect(self, image: np.ndarray) -> Points:
+        c = self.config
+        return detect_corners(image, c.max_features, c.grid, c.quality_level, c.min_distance,
+                              c.min_corner_eigenvalue)  # fmt: skip
+
+    def _usac(self, factor: float = 1.0) -> cv2.UsacParams:
+        c = self.config
+        threshold = factor * c.ransac_threshold * self._scale
+        return usac_params(threshold, c.seed, c.ransac_max_iterations, c.ransac_confidence)
+
+    def _result(self, state: TrackingState, stamp: float | None, match_count: int) -> TrackResult:
+        return TrackResult(
+            state=state, frame_index=self._frame_index, stamp=stamp, H_ref=None, H_keyframe=None,
+            keyframe_id=self._keyframe_id, reference_id=self._reference_id, inlier_count=0,
+            match_count=match_count, rms_transfer_error=float("nan"),
+        )  # fmt: skip
+
+
+def _corners(shape: tuple[int, ...]) -> Array:
+    h, w = shape[:2]
+    return np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
+
+
+def _overlap(H_frame_to_keyframe: Array, shape: tuple[int, ...]) -> float:
+    """Fraction of the frame's area that lies inside the keyframe (both the same image size)."""
+    quad = apply_homography(H_frame_to_keyframe, _corners(shape)).astype(np.float32)
+    area = abs(cv2.contourArea(quad))
+    if not np.all(np.isfinite(quad)) or area <= 0.0 or not cv2.isContourConvex(quad):
+        return 0.0
+    inter, _ = cv2.intersectConvexConvex(quad, _corners(shape).astype(np.float32))
+    return float(inter / area)
+
+
+def _local_scale(H: Array, shape: tuple[int, ...]) -> float:
+    """sqrt|det J| of x -> Hx at the image centre: the zoom factor between the two images there."""
+    h, w = shape[:2]
+    x = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+    p = H @ x
+    J = (H[:2, :2] * p[2] - np.outer(p[:2], H[2, :2])) / p[2] ** 2
+    return float(np.sqrt(abs(np.linalg.det(J))))
+
+
+def _plausible(H: Array, shape: tuple[int, ...]) -> bool:
+    """Reject degenerate fits: the frame must map to a convex quadrilateral of sane size."""
+    quad = apply_homography(H, _corners(shape)).astype(np.float32)
+    if not np.all(np.isfinite(quad)) or not cv2.isContourConvex(quad):
+        return False
+    ratio = abs(cv2.contourArea(quad)) / float(shape[0] * shape[1])
+    return 0.05 < ratio < 20.0
