@@ -1,0 +1,93 @@
+"""core.metrics: the DESIGN.md section 7 metrics on hand-checked and synthetic cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from ptz_selfcal.core import metrics
+from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
+from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation, rot_z
+
+
+def test_focal_and_principal_point_errors() -> None:
+    e = metrics.focal_errors([1010.0, 990.0, np.nan], [1000.0, 1000.0, 1000.0])
+    np.testing.assert_allclose(e[:2], [0.01, 0.01])
+    assert np.isnan(e[2])
+    d = metrics.principal_point_errors([[3.0, 4.0], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]])
+    np.testing.assert_allclose(d, [5.0, 0.0])
+
+
+def test_summaries_ignore_nan_and_split_after_warmup() -> None:
+    s = metrics.summarise([1.0, 2.0, 3.0, np.nan])
+    assert s["count"] == 3 and s["median"] == 2.0 and s["max"] == 3.0
+    assert s["rms"] == pytest.approx(np.sqrt(14.0 / 3.0))
+    assert metrics.summarise([])["count"] == 0
+    assert metrics.warmup_frames(300) == 30 and metrics.warmup_frames(7) == 1
+    assert metrics.warmup_frames(0) == 0
+    values = np.r_[np.full(30, 100.0), np.full(270, 1.0)]
+    split = metrics.summarise_split(values, metrics.warmup_frames(len(values)))
+    assert split["all"]["max"] == 100.0
+    assert split["after_warmup"]["max"] == 1.0 and split["after_warmup"]["count"] == 270
+
+
+def test_frame_pairs_stride_validity_and_segments() -> None:
+    pairs = metrics.frame_pairs(25, stride=10, max_partners=3)
+    assert {tuple(p) for p in pairs} == {(i, i + 10) for i in range(15)} | {(i, i + 20) for i in range(5)}
+    valid = np.ones(25, bool)
+    valid[10] = False
+    pairs = metrics.frame_pairs(25, stride=10, max_partners=3, valid=valid)
+    assert not np.any(pairs == 10)
+    segments = np.r_[np.zeros(12), np.ones(13)]
+    pairs = metrics.frame_pairs(25, stride=10, max_partners=3, segments=segments)
+    assert np.all(segments[pairs[:, 0]] == segments[pairs[:, 1]])
+    assert len(metrics.frame_pairs(25, stride=10, first=20)) == 0
+
+
+def test_pairwise_rotation_error_is_reference_free_and_detects_scaled_motion() -> None:
+    rng = np.random.default_rng(3)
+    pan = np.radians(rng.uniform(-40, 40, 50))
+    tilt = np.radians(rng.uniform(-8, 8, 50))
+    R_true = metrics.rotations_from_encoders(pan, tilt)
+    # the estimate is relative to an arbitrary reference (any fixed right factor): zero error
+    A = ptz_rotation(0.3, -0.1) @ rot_z(0.05)
+    R_est = np.einsum("nij,jk->nik", R_true, A.T)
+    pairs = metrics.frame_pairs(50, stride=3, max_partners=5)
+    err = metrics.pairwise_rotation_errors(R_est, R_true, pairs)
+    assert np.max(err) < 1e-9
+    # motion under-estimated by 1% (what a focal over-estimate does): the error grows with the angle
+    R_scaled = metrics.rotations_from_encoders(0.99 * pan, 0.99 * tilt)
+    err = metrics.pairwise_rotation_errors(R_scaled, R_true, pairs)
+    true_angles = metrics.pairwise_rotation_errors(np.tile(np.eye(3), (50, 1, 1)), R_true, pairs)
+    np.testing.assert_allclose(err, 0.01 * true_angles, rtol=0.05, atol=1e-6)
+
+
+def test_alignment_recovers_pan_tilt_path() -> None:
+    pan = np.radians(np.linspace(-40, 40, 30))
+    tilt = np.radians(8 * np.sin(np.linspace(0, 3, 30)))
+    R_true = metrics.rotations_from_encoders(pan, tilt)
+    R_est = np.einsum("nij,kj->nik", R_true, R_true[7])  # relative to frame 7 as reference
+    A = metrics.align_rotations(R_est, R_true)
+    path = metrics.pan_tilt_path(np.einsum("nij,jk->nik", R_est, A))
+    np.testing.assert_allclose(path[:, 0], np.degrees(pan), atol=1e-6)
+    np.testing.assert_allclose(path[:, 1], np.degrees(tilt), atol=1e-6)
+    assert np.all(np.isnan(metrics.pan_tilt_path(np.full((1, 3, 3), np.nan))))
+
+
+def test_coverage() -> None:
+    assert metrics.coverage([1, 2, 3, 4], [4, 2, 1, 3, 99]) == 1.0
+    assert metrics.coverage([1, 2, 3, 4], [1, 2]) == 0.5
+    assert metrics.coverage([], []) == 1.0
+
+
+def test_distortion_error_zero_for_the_equivalent_plumb_bob_and_large_when_ignored() -> None:
+    width, height = 1280, 720
+    K = intrinsic_matrix(900.0, 650.0, 350.0)
+    lam = division_lambda_for_corner_shift(0.12, width, height, 900.0)
+    k1, k2 = division_to_plumb_bob(lam, K, width, height)
+    true = ("division", [lam], K)
+    est_good = ("plumb_bob", [k1, k2, 0, 0, 0], K)
+    est_none = ("plumb_bob", [0, 0, 0, 0, 0], K)
+    errors = metrics.distortion_errors([est_good, est_none, None], [true, true, true], width, height)
+    assert errors[0] < 1.0
+    assert errors[1] > 50.0  # 12% of the 734 px half-diagonal, ignored
+    assert np.isnan(errors[2])
