@@ -24,6 +24,10 @@ setup(
     entry_points={
         "console_scripts": [
             "ptz-selfcal = ptz_selfcal.tools.cli:main",
+            # node executables for `ros2 run` / launch files on a full ROS install (each module has main())
+            "frame_ingest = ptz_selfcal.nodes.frame_ingest:main",
+            "homography_tracker = ptz_selfcal.nodes.homography_tracker:main",
+            "calibrator = ptz_selfcal.nodes.calibrator:main",
         ],
     },
 )
