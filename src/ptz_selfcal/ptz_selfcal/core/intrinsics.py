@@ -221,3 +221,21 @@ class SelfCalibrationResult:
     def quaternions(self) -> Array:
         """(n, 4) orientation of each frame relative to frame 0 as (x, y, z, w)."""
         return np.array([quaternion_from_matrix(R) for R in self.R])
+
+
+def nearest_rotations(M: ArrayLike) -> Array:
+    """Batched projection of (n, 3, 3) matrices onto SO(3) (SVD, Frobenius-nearest)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    d = np.sign(np.linalg.det(U @ Vt))
+    U = U.copy()
+    U[:, :, 2] *= d[:, None]
+    return U @ Vt
+
+
+def rotations_from_homographies(H: ArrayLike, K: ArrayLike) -> Array:
+    """(n, 3, 3) R_j = K_j^-1 H_j K_0 (section 3.3.1), scale removed and projected onto SO(3)."""
+    H = np.asarray(H, dtype=float).reshape(-1, 3, 3)
+    K = np.asarray(K, dtype=float).reshape(-1, 3, 3)
+    M = np.linalg.solve(K, H @ K[0])
+    M /= np.cbrt(np.linalg.det(M))[:, None, None]
+    return nearest_rotations(M)
