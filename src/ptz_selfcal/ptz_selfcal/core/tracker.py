@@ -59,7 +59,11 @@ class TrackerConfig:
     klt_window: int = 15
     klt_levels: int = 3
     klt_iterations: int = 10
+    klt_epsilon: float = 0.01  # KLT stops when the update is below this (working pixels)
     klt_fb_threshold: float = 0.5  # working pixels
+    # KLT source: "warped" = keyframe warped by the predicted homography (no drift, no zoom bias),
+    # "keyframe" = keyframe image seeded by the prediction, "frame" = previous frame (classic KLT).
+    klt_source: str = "warped"
     ransac_threshold: float = 2.0  # full-resolution pixels
     ransac_max_iterations: int = 1000
     ransac_confidence: float = 0.999
@@ -71,6 +75,7 @@ class TrackerConfig:
     keyframe_max_scale_change: float = 1.2
     keyframe_min_track_fraction: float = 0.5
     link_min_overlap: float = 0.5  # older keyframes overlapping this much are link candidates
+    link_max_deviation: float = 8.0  # full-res px a link may differ from the tracked chain
     link_candidates: int = 2  # older keyframes re-matched per new keyframe (besides the previous one)
     max_keyframes: int = 64  # keyframe store cap (oldest pruned; the reference is kept)
     orb_features: int = 800
@@ -128,6 +133,8 @@ class _Tracks:
     current: Points = field(default_factory=lambda: np.empty((0, 2), np.float32))
     in_keyframe: Points = field(default_factory=lambda: np.empty((0, 2), np.float32))
     initial_count: int = 0
+    H_last: Array = field(default_factory=lambda: np.eye(3))  # keyframe -> last frame (working pixels)
+    H_previous: Array = field(default_factory=lambda: np.eye(3))  # keyframe -> the frame before
 
 
 class HomographyTracker:
@@ -137,7 +144,7 @@ class HomographyTracker:
         self.config = config or TrackerConfig()
         c = self.config
         self._klt = KltParams(window=c.klt_window, levels=c.klt_levels, iterations=c.klt_iterations,
-                              fb_threshold=c.klt_fb_threshold)  # fmt: skip
+                              epsilon=c.klt_epsilon, fb_threshold=c.klt_fb_threshold)  # fmt: skip
         self._orb = cv2.ORB_create(nfeatures=c.orb_features, scaleFactor=1.2, nlevels=8, fastThreshold=10)
         self.reset()
 
@@ -184,8 +191,7 @@ class HomographyTracker:
     def _track_frame(self, image: np.ndarray, stamp: float | None) -> TrackResult:
         c = self.config
         keyframe = self._keyframes[self._keyframe_id]
-        previous = self._gain_matched(self._previous, image)
-        current, ok = track_klt(previous, image, self._tracks.current, self._klt)
+        current, ok = self._klt_tracks(keyframe, image)
         match_count = int(ok.sum())
         fit = None
         if match_count >= c.min_inliers:
@@ -196,6 +202,7 @@ class HomographyTracker:
         keep = np.flatnonzero(ok)[fit.inliers]
         self._tracks.current = current[keep]
         self._tracks.in_keyframe = self._tracks.in_keyframe[keep]
+        self._tracks.H_previous, self._tracks.H_last = self._tracks.H_last, fit.H
         H_keyframe = homography_work_to_full(fit.H, self._scale)
         H_ref = H_keyframe @ keyframe.H_ref
         inlier_count = int(fit.inliers.sum())
@@ -207,6 +214,31 @@ class HomographyTracker:
             inlier_count=inlier_count, match_count=match_count, rms_transfer_error=fit.rms / self._scale,
         )  # fmt: skip
 
+    def _klt_tracks(self, keyframe: Keyframe, image: np.ndarray) -> tuple[Points, NDArray[np.bool_]]:
+        """Track positions in the current frame: frame to frame, or straight from the keyframe image
+        seeded by a constant-velocity prediction of the keyframe -> frame homography (no drift)."""
+        tracks, source = self._tracks, self.config.klt_source
+        if source == "frame":
+            previous = self._gain_matched(self._previous, image)
+            return track_klt(previous, image, tracks.current, self._klt)
+        H_pred = tracks.H_last @ np.linalg.inv(tracks.H_previous) @ tracks.H_last
+        guess = apply_homography(H_pred, tracks.in_keyframe).astype(np.float32)
+        bad = ~np.all(np.isfinite(guess), axis=1)
+        guess[bad] = tracks.current[bad]
+        if source == "keyframe":
+            reference = self._gain_matched(keyframe.image, image)
+            return track_klt(reference, image, tracks.in_keyframe, self._klt, initial=guess)
+        # Inverse-compositional flavour: the keyframe resampled into the predicted current geometry, so
+        # KLT only measures the small residual motion between two images of equal scale and rotation.
+        h, w = image.shape
+        warped = self._gain_matched_warp(cv2.warpPerspective(keyframe.image, H_pred, (w, h)), image)
+        found, ok = track_klt(warped, image, guess, self._klt, initial=guess, levels=2)
+        margin = self.config.klt_window // 2 + 1
+        kh, kw = keyframe.image.shape
+        pts = tracks.in_keyframe
+        ok &= np.all(pts >= margin, axis=1) & (pts[:, 0] <= kw - 1 - margin) & (pts[:, 1] <= kh - 1 - margin)
+        return found, ok
+
     def _gain_matched(self, previous: np.ndarray, image: np.ndarray) -> np.ndarray:
         """Previous frame rescaled to the current mean brightness (KLT assumes constant brightness)."""
         if not self.config.gain_compensation:
@@ -216,6 +248,17 @@ class HomographyTracker:
         if mean_prev < 1.0 or abs(mean_cur / mean_prev - 1.0) < 0.02:
             return previous
         return cv2.convertScaleAbs(previous, alpha=mean_cur / mean_prev)
+
+    def _gain_matched_warp(self, warped: np.ndarray, image: np.ndarray) -> np.ndarray:
+        """As _gain_matched, with the means taken where the warped keyframe has data (not the border)."""
+        if not self.config.gain_compensation:
+            return warped
+        valid = (warped > 0).view(np.uint8)
+        mean_warp = float(cv2.mean(warped, mask=valid)[0])
+        mean_cur = float(cv2.mean(image, mask=valid)[0])
+        if mean_warp < 1.0 or abs(mean_cur / mean_warp - 1.0) < 0.02:
+            return warped
+        return cv2.convertScaleAbs(warped, alpha=mean_cur / mean_warp)
 
     def _needs_keyframe(self, H_work: Array, inlier_count: int, shape: tuple[int, ...]) -> bool:
         c = self.config
@@ -257,7 +300,10 @@ class HomographyTracker:
             )  # fmt: skip
         descriptors = orb_descriptors(self._orb, image)
         H_ref_guess = homography_work_to_full(fit.H, self._scale) @ parent.H_ref
-        guesses = [(parent, fit.H), *self._older_candidates(image, H_ref_guess, descriptors, parent.id)]
+        guesses = [
+            (parent, fit.H, fit.H),
+            *self._older_candidates(image, H_ref_guess, descriptors, parent.id),
+        ]
         result = self._commit_keyframe(image, stamp, corners, descriptors, guesses,
                                        TrackingState.NEW_KEYFRAME, fit, match_count)  # fmt: skip
         assert result is not None  # the tracked fit is the fallback link
@@ -265,7 +311,7 @@ class HomographyTracker:
 
     def _older_candidates(
         self, image: np.ndarray, H_ref_guess: Array, descriptors: Descriptors, exclude: int
-    ) -> list[tuple[Keyframe, Array]]:
+    ) -> list[tuple[Keyframe, Array, Array]]:
         """Older keyframes overlapping the new one, fewest hops to the reference first, with an
         initial keyframe -> frame homography re-matched from descriptors (working pixels)."""
         c = self.config
@@ -283,7 +329,7 @@ class HomographyTracker:
         for *_, kf, H_work in scored[: c.link_candidates]:
             src, dst = match_descriptors(kf.descriptors, descriptors, c.descriptor_ratio)
             fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
-            out.append((kf, fit.H if fit is not None else H_work))
+            out.append((kf, fit.H if fit is not None else H_work, H_work))
         return out
 
     def _commit_keyframe(
@@ -292,18 +338,24 @@ class HomographyTracker:
         stamp: float | None,
         corners: Points,
         descriptors: Descriptors,
-        guesses: list[tuple[Keyframe, Array]],
+        guesses: list[tuple[Keyframe, Array, Array | None]],
         state: TrackingState,
         fit: RobustFit | None,
         match_count: int,
     ) -> TrackResult | None:
         """Store the frame as a keyframe chained through its best link; None if no link holds."""
         links, best = [], None
-        for kf, H0 in guesses:
+        for kf, H0, expected in guesses:
             refined = self._photometric_link(kf, image, corners, H0)
             if refined is None:
                 continue
             link_fit, src, dst = refined
+            if (
+                expected is not None
+                and _deviation(link_fit.H, expected, image.shape) > self._link_tolerance()
+            ):
+                _LOG.debug("link %d -> frame %d disagrees with tracking: dropped", kf.id, self._frame_index)
+                continue
             link = self._make_link(kf, link_fit, src, dst)
             links.append(link)
             if best is None or (kf.depth, -link_fit.inliers.sum()) < (best[0].depth, -best[1].inliers.sum()):
@@ -343,8 +395,7 @@ class HomographyTracker:
         )
         if visible.sum() < c.min_inliers:
             return None
-        warped = cv2.warpPerspective(kf.image, H0, (w, h), flags=cv2.INTER_LINEAR)
-        warped = self._gain_matched(warped, image)
+        warped = self._gain_matched_warp(cv2.warpPerspective(kf.image, H0, (w, h)), image)
         pts = corners[visible]
         found, ok = track_klt(image, warped, pts, self._klt, initial=pts, levels=2)
         if ok.sum() < c.min_inliers:
@@ -377,7 +428,10 @@ class HomographyTracker:
         keyframe = Keyframe(self._frame_index, stamp, image, H_ref, depth, corners, descriptors)
         self._keyframes[keyframe.id] = keyframe
         self._keyframe_id = keyframe.id
-        self._tracks = _Tracks(current=corners.copy(), in_keyframe=corners.copy(), initial_count=len(corners))
+        # Keep the frame-to-frame motion for the constant-velocity prediction (identity after a loss).
+        velocity = np.eye(3) if self._lost else self._tracks.H_last @ np.linalg.inv(self._tracks.H_previous)
+        self._tracks = _Tracks(current=corners.copy(), in_keyframe=corners.copy(), initial_count=len(corners),
+                               H_previous=np.linalg.inv(velocity))  # fmt: skip
         self._prune()
         return keyframe
 
@@ -406,7 +460,7 @@ class HomographyTracker:
             fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
             if fit is None or not _plausible(fit.H, image.shape):
                 continue
-            result = self._commit_keyframe(image, stamp, corners, descriptors, [(kf, fit.H)],
+            result = self._commit_keyframe(image, stamp, corners, descriptors, [(kf, fit.H, None)],
                                            TrackingState.RELOCALISED, None, len(src))  # fmt: skip
             if result is not None:
                 return result
@@ -432,6 +486,10 @@ class HomographyTracker:
         c = self.config
         threshold = factor * c.ransac_threshold * self._scale
         return usac_params(threshold, c.seed, c.ransac_max_iterations, c.ransac_confidence)
+
+    def _link_tolerance(self) -> float:
+        """Largest disagreement (working pixels) between a re-matched link and the tracked chain."""
+        return self.config.link_max_deviation * self._scale
 
     def _result(self, state: TrackingState, stamp: float | None, match_count: int) -> TrackResult:
         return TrackResult(
@@ -463,6 +521,13 @@ def _local_scale(H: Array, shape: tuple[int, ...]) -> float:
     p = H @ x
     J = (H[:2, :2] * p[2] - np.outer(p[:2], H[2, :2])) / p[2] ** 2
     return float(np.sqrt(abs(np.linalg.det(J))))
+
+
+def _deviation(H_a: Array, H_b: Array, shape: tuple[int, ...]) -> float:
+    """Largest distance between two homographies' images of a grid over the source image."""
+    h, w = shape[:2]
+    grid = np.stack(np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 4)), -1).reshape(-1, 2)
+    return float(np.max(np.linalg.norm(apply_homography(H_a, grid) - apply_homography(H_b, grid), axis=1)))
 
 
 def _plausible(H: Array, shape: tuple[int, ...]) -> bool:
