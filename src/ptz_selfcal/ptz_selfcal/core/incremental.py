@@ -1,0 +1,437 @@
+"""Incremental self-calibration the calibrator node drives (DESIGN.md 5.7; no rclpy).
+
+A calibration reference frame (frame 0) anchors everything: each keyframe brings the homography
+mapping reference pixels to its own pixels. Once the keyframes' rotation is well posed (section 6:
+enough rotation about two axes) the reference K_0 and every keyframe's K_j are solved by LM on
+eq. 22 over a BOUNDED keyframe set (the most redundant keyframe is dropped beyond max_keyframes),
+so time and memory stay bounded however long the camera runs.
+
+Any frame's K then costs O(1): its DIAC is the reference DIAC transferred by its homography,
+omega*_j = H_j omega*_0 H_j^T (eq. 20), fitted to the model (e.g. least-squares f with the constant
+principal point).
+
+Seam for bundle adjustment (section 5): `solver` is any callable with the signature of
+`lm_solver` below; it receives the keyframe records (which may carry point matches attached with
+`add_keyframe(..., matches=...)`) and returns a SelfCalibrationResult whose frame 0 is the reference.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ptz_selfcal.core.degeneracy import (
+    STATUS_INSUFFICIENT_ROTATION,
+    STATUS_OK,
+    MotionReport,
+    analyse_motion,
+    rotation_vectors,
+)
+from ptz_selfcal.core.geometry import intrinsic_matrix, normalise_homography, rotation_from_homography
+from ptz_selfcal.core.intrinsics import (
+    IntrinsicsModel,
+    ParamMode,
+    SelfCalibrationError,
+    SelfCalibrationResult,
+    image_centre,
+    rotations_from_homographies,
+)
+from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+
+Array = NDArray[np.float64]
+
+
+class CalibrationState(enum.Enum):
+    """Calibrator status (DESIGN.md section 4, FrameCalibration.status)."""
+
+    INITIALISING = "INITIALISING"
+    CALIBRATING = "CALIBRATING"
+    CONVERGED = "CONVERGED"
+    DEGENERATE_MOTION = "DEGENERATE_MOTION"
+
+
+@dataclass
+class Keyframe:
+    """A keyframe: H maps the reference frame's pixels to this keyframe's pixels (unit determinant)."""
+
+    keyframe_id: Hashable
+    H: Array
+    stamp: float | None = None
+    matches: Any = None  # optional data for a bundle-adjustment solver (not serialised)
+    K: Array | None = None  # latest estimate
+
+
+SolverFn = Callable[
+    [Array, tuple[int, int], IntrinsicsModel, "Array | None", list[Keyframe], int],
+    SelfCalibrationResult,
+]
+
+
+def lm_solver(
+    H: Array,
+    image_size: tuple[int, int],
+    model: IntrinsicsModel,
+    K_init: Array | None,
+    keyframes: list[Keyframe],
+    max_nfev: int,
+) -> SelfCalibrationResult:
+    """Default solver: LM on eq. 22 (keyframe records unused)."""
+    del keyframes
+    return lm_selfcalibration(H, image_size, model, K_init, max_nfev=max_nfev)
+
+
+@dataclass
+class _Solve:
+    """Summary of the latest accepted solve."""
+
+    K_ref: Array
+    sigma_f_ref: float
+    residual: float
+    method: str
+    seconds: float
+    nfev: int
+    motion: dict = field(default_factory=dict)
+
+
+class IncrementalCalibrator:
+    """Keyframe-based online self-calibration with O(1) per-frame intrinsics."""
+
+    def __init__(
+        self,
+        image_size: tuple[int, int],
+        model: IntrinsicsModel | None = None,
+        *,
+        min_rotation_deg: float = 2.0,
+        max_keyframes: int = 30,
+        prior_K: ArrayLike | None = None,
+        solver: SolverFn | None = None,
+        solve_interval: int = 1,
+        converge_tol: float = 5e-3,
+        min_keyframes: int = 4,
+    ) -> None:
+        if max_keyframes < min_keyframes:
+            raise ValueError("max_keyframes must be >= min_keyframes")
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.model = model or IntrinsicsModel()
+        self.min_rotation_deg = float(min_rotation_deg)
+        self.max_keyframes = int(max_keyframes)
+        self.solve_interval = max(1, int(solve_interval))
+        self.converge_tol = float(converge_tol)
+        self.min_keyframes = int(min_keyframes)
+        self.solver: SolverFn = solver or lm_solver
+        if prior_K is None:
+            cx, cy = image_centre(self.image_size)
+            prior_K = intrinsic_matrix(float(self.image_size[0]), cx, cy)
+        self.prior_K = np.asarray(prior_K, dtype=float)
+        self.keyframes: list[Keyframe] = []
+        self.state = CalibrationState.INITIALISING
+        self.motion: MotionReport | None = None
+        self.last_solve: _Solve | None = None
+        self.message = ""
+        self._adds_since_solve = 0
+        self._stable_solves = 0
+
+    # ---- public API -----------------------------------------------------------------------
+    @property
+    def reference_K(self) -> Array:
+        """Current K_0 of the reference frame (the prior until a calibration was accepted)."""
+        return self.prior_K.copy() if self.last_solve is None else self.last_solve.K_ref.copy()
+
+    @property
+    def calibrated(self) -> bool:
+        return self.last_solve is not None
+
+    def add_keyframe(
+        self,
+        keyframe_id: Hashable,
+        H_ref_to_keyframe: ArrayLike,
+        stamp: float | None = None,
+        matches: Any = None,
+    ) -> CalibrationState:
+        """Store a keyframe; solve when the motion is well posed (every `solve_interval` keyframes)."""
+        H = normalise_homography(H_ref_to_keyframe)
+        self.keyframes = [kf for kf in self.keyframes if kf.keyframe_id != keyframe_id]
+        self.keyframes.append(Keyframe(keyframe_id, H, None if stamp is None else float(stamp), matches))
+        if len(self.keyframes) > self.max_keyframes:
+            self._drop_redundant(len(self.keyframes) - self.max_keyframes)
+        self._adds_since_solve += 1
+        self.motion = self._motion_from_current_calibration()
+        if self.motion.status == STATUS_INSUFFICIENT_ROTATION or len(self.keyframes) < self.min_keyframes:
+            if not self.calibrated:
+                self.state = CalibrationState.INITIALISING
+            return self.state
+        if self.motion.status != STATUS_OK and not self.calibrated:
+            self.state = CalibrationState.DEGENERATE_MOTION
+            self.message = self.motion.message
+            return self.state
+        if not self.calibrated or self._adds_since_solve >= self.solve_interval:
+            self.reoptimise()
+        return self.state
+
+    def frame_intrinsics(self, H_ref_to_frame: ArrayLike) -> tuple[Array, Array, float]:
+        """(K_j, R_j, sigma_f_j) of any frame in O(1) from the reference calibration (eq. 20).
+
+        sigma_f_j = f_j sigma_f0 / f_0: the common-scale term of section 6.2 dominates.
+        """
+        H = normalise_homography(H_ref_to_frame)
+        K_ref = self.reference_K
+        K_j = intrinsics_from_transferred_diac(H, K_ref, self.model, self.image_size)
+        R_j = rotation_from_homography(H, K_ref, K_j)
+        if self.last_solve is None:
+            return K_j, R_j, float("nan")
+        rel = self.last_solve.sigma_f_ref / self.last_solve.K_ref[1, 1]
+        return K_j, R_j, float(K_j[1, 1] * rel)
+
+    def reoptimise(
+        self, max_seconds: float | None = None, solver: SolverFn | None = None
+    ) -> CalibrationState:
+        """Re-solve over the bounded keyframe set (reference frame first) and update the state."""
+        self._adds_since_solve = 0
+        if len(self.keyframes) < self.min_keyframes:
+            return self.state
+        H = np.concatenate([np.eye(3)[None], np.array([kf.H for kf in self.keyframes])])
+        K_init = None
+        if self.calibrated:
+            K_init = np.array([self.reference_K] + [kf.K for kf in self.keyframes if kf.K is not None])
+            if len(K_init) != len(H):
+                K_init = self._transferred_intrinsics(H)
+        max_nfev = self._nfev_budget(max_seconds)
+        start = time.perf_counter()
+        try:
+            result = (solver or self.solver)(
+                H, self.image_size, self.model, K_init, list(self.keyframes), max_nfev
+            )
+        except SelfCalibrationError as error:
+            self.message = str(error)
+            if not self.calibrated:
+                self.state = CalibrationState.DEGENERATE_MOTION
+            return self.state
+        seconds = time.perf_counter() - start
+        self._accept(result, seconds)
+        return self.state
+
+    # ---- persistence ----------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """State as plain Python types (YAML-serialisable). Keyframe matches are not saved."""
+        return {
+            "version": 1,
+            "image_size": list(self.image_size),
+            "model": model_to_dict(self.model),
+            "min_rotation_deg": self.min_rotation_deg,
+            "max_keyframes": self.max_keyframes,
+            "solve_interval": self.solve_interval,
+            "converge_tol": self.converge_tol,
+            "min_keyframes": self.min_keyframes,
+            "prior_K": self.prior_K.tolist(),
+            "state": self.state.value,
+            "message": self.message,
+            "stable_solves": self._stable_solves,
+            "keyframes": [
+                {
+                    "id": kf.keyframe_id,
+                    "H": kf.H.tolist(),
+                    "stamp": kf.stamp,
+                    "K": None if kf.K is None else kf.K.tolist(),
+                }
+                for kf in self.keyframes
+            ],
+            "last_solve": None
+            if self.last_solve is None
+            else {
+                "K_ref": self.last_solve.K_ref.tolist(),
+                "sigma_f_ref": float(self.last_solve.sigma_f_ref),
+                "residual": float(self.last_solve.residual),
+                "method": self.last_solve.method,
+                "seconds": float(self.last_solve.seconds),
+                "nfev": int(self.last_solve.nfev),
+                "motion": self.last_solve.motion,
+            },
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict, solver: SolverFn | None = None) -> IncrementalCalibrator:
+        calibrator = cls(
+            tuple(data["image_size"]),
+            model_from_dict(data["model"]),
+            min_rotation_deg=data["min_rotation_deg"],
+            max_keyframes=data["max_keyframes"],
+            prior_K=np.array(data["prior_K"]),
+            solver=solver,
+            solve_interval=data.get("solve_interval", 1),
+            converge_tol=data.get("converge_tol", 5e-3),
+            min_keyframes=data.get("min_keyframes", 4),
+        )
+        calibrator.keyframes = [
+            Keyframe(
+                kf["id"],
+                np.array(kf["H"], dtype=float),
+                kf["stamp"],
+                None,
+                None if kf["K"] is None else np.array(kf["K"], dtype=float),
+            )
+            for kf in data["keyframes"]
+        ]
+        calibrator.state = CalibrationState(data["state"])
+        calibrator.message = data.get("message", "")
+        calibrator._stable_solves = int(data.get("stable_solves", 0))
+        solve = data.get("last_solve")
+        if solve is not None:
+            calibrator.last_solve = _Solve(
+                np.array(solve["K_ref"], dtype=float),
+                solve["sigma_f_ref"],
+                solve["residual"],
+                solve["method"],
+                solve["seconds"],
+                solve["nfev"],
+                solve.get("motion", {}),
+            )
+        return calibrator
+
+    # ---- internals ------------------------------------------------------------------------
+    def _accept(self, result: SelfCalibrationResult, seconds: float) -> None:
+        motion = result.motion
+        if not result.ok:
+            self.message = result.message
+            degenerate = motion is not None and motion.status not in (STATUS_OK, STATUS_INSUFFICIENT_ROTATION)
+            if degenerate:
+                self.state = CalibrationState.DEGENERATE_MOTION
+            self._stable_solves = 0
+            return  # keep the previous calibration (if any)
+        previous = None if self.last_solve is None else self.last_solve.K_ref[1, 1]
+        self.last_solve = _Solve(
+            K_ref=result.K[0].copy(),
+            sigma_f_ref=float(result.sigma_f[0]),
+            residual=result.residual,
+            method=result.method,
+            seconds=seconds,
+            nfev=result.iterations,
+            motion={} if motion is None else motion.to_dict(),
+        )
+        for kf, K in zip(self.keyframes, result.K[1:]):
+            kf.K = K.copy()
+        self.message = ""
+        change = np.inf if previous is None else abs(result.K[0, 1, 1] / previous - 1.0)
+        self._stable_solves = self._stable_solves + 1 if change < self.converge_tol else 0
+        converged = self._stable_solves >= 2
+        self.state = CalibrationState.CONVERGED if converged else CalibrationState.CALIBRATING
+
+    def _nfev_budget(self, max_seconds: float | None) -> int:
+        """LM evaluation budget from a time budget and the last solve's cost per evaluation."""
+        if max_seconds is None or self.last_solve is None or self.last_solve.nfev == 0:
+            return 200
+        per_eval = self.last_solve.seconds / max(self.last_solve.nfev, 1)
+        return int(np.clip(max_seconds / max(per_eval, 1e-6), 3, 200))
+
+    def _transferred_intrinsics(self, H: Array) -> Array:
+        K_ref = self.reference_K
+        return np.array([intrinsics_from_transferred_diac(h, K_ref, self.model, self.image_size) for h in H])
+
+    def _motion_from_current_calibration(self) -> MotionReport:
+        """Section-6 analysis of the keyframes' rotations under the current (or prior) calibration."""
+        H = np.concatenate([np.eye(3)[None], np.array([kf.H for kf in self.keyframes])])
+        K = self._transferred_intrinsics(H)
+        R = rotations_from_homographies(H, K)
+        return analyse_motion(R, K, self.image_size, min_rotation_deg=self.min_rotation_deg)
+
+    def _drop_redundant(self, count: int) -> None:
+        """Drop `count` keyframes, each the older of the closest pair in (rotation, log zoom).
+
+        The most redundant keyframe carries the least new information; O(k^2), k <= max_keyframes + 1.
+        """
+        H = np.array([kf.H for kf in self.keyframes])
+        K_ref = self.reference_K
+        K = np.array([intrinsics_from_transferred_diac(h, K_ref, self.model, self.image_size) for h in H])
+        R = rotations_from_homographies(
+            np.concatenate([np.eye(3)[None], H]), np.concatenate([K_ref[None], K])
+        )[1:]
+        fov = 2.0 * np.arctan(0.5 * self.image_size[0] / K[:, 1, 1])
+        rotvec = rotation_vectors(R) / np.median(fov)  # rotation in fields of view
+        features = np.column_stack([rotvec, np.log(K[:, 1, 1])])  # log zoom ~ fields of view change
+        for _ in range(count):
+            d = np.linalg.norm(features[:, None] - features[None], axis=2)
+            d[np.diag_indices(len(d))] = np.inf
+            i, j = np.unravel_index(np.argmin(d), d.shape)
+            drop = min(i, j)  # the older of the most redundant pair
+            del self.keyframes[drop]
+            features = np.delete(features, drop, axis=0)
+
+
+def intrinsics_from_transferred_diac(
+    H: ArrayLike, K_ref: ArrayLike, model: IntrinsicsModel, image_size: tuple[int, int]
+) -> Array:
+    """K_j from the reference DIAC transferred by H_j: omega*_j = H omega*_0 H^T (eq. 20).
+
+    With a constant or known principal point (and known/constant aspect and skew taken from K_ref)
+    only f is free: lambda omega*_j = f^2 P + Q is linear in (lambda, f^2) and solved by least squares
+    in coordinates centred and scaled by K_ref's focal length. Otherwise K_j is the Cholesky factor.
+    """
+    K_ref = np.asarray(K_ref, dtype=float)
+    s = K_ref[1, 1]
+    c = image_centre(image_size)
+    N = np.array([[1.0 / s, 0.0, -c[0] / s], [0.0, 1.0 / s, -c[1] / s], [0.0, 0.0, 1.0]])
+    Hn = N @ np.asarray(H, dtype=float) @ np.linalg.inv(N)
+    Kn_ref = N @ K_ref
+    diac = Hn @ Kn_ref @ Kn_ref.T @ Hn.T
+    if model.principal_point is ParamMode.VARYING or model.focal is not ParamMode.VARYING:
+        K_n = _upper_cholesky(diac)
+    else:
+        gamma, skew = Kn_ref[0, 0] / Kn_ref[1, 1], Kn_ref[0, 1] / Kn_ref[1, 1]
+        pp = Kn_ref[:2, 2]
+        P = np.array([[gamma**2 + skew**2, skew, 0.0], [skew, 1.0, 0.0], [0.0, 0.0, 0.0]])
+        p3 = np.append(pp, 1.0)
+        Q = np.outer(p3, p3)
+        A = np.column_stack([diac.ravel(), -P.ravel()])
+        _scale, f2 = np.linalg.lstsq(A, Q.ravel(), rcond=None)[0]
+        if not f2 > 0.0:
+            raise SelfCalibrationError("transferred DIAC gives a non-positive focal length")
+        f = np.sqrt(f2)
+        K_n = np.array([[gamma * f, skew * f, pp[0]], [0.0, f, pp[1]], [0.0, 0.0, 1.0]])
+    K = np.linalg.inv(N) @ K_n
+    return K / K[2, 2]
+
+
+def _upper_cholesky(diac: Array) -> Array:
+    """Upper-triangular K with K K^T = diac (K[2, 2] = 1)."""
+    diac = 0.5 * (diac + diac.T)
+    if np.linalg.eigvalsh(diac)[0] <= 0.0:
+        raise SelfCalibrationError("transferred DIAC is not positive definite")
+    flip = np.eye(3)[::-1]
+    L = np.linalg.cholesky(flip @ diac @ flip)  # reverse-order Cholesky gives an upper factor
+    K = flip @ L @ flip
+    return K / K[2, 2]
+
+
+def model_to_dict(model: IntrinsicsModel) -> dict:
+    """IntrinsicsModel as plain Python types."""
+    return {
+        "focal": model.focal.value,
+        "aspect": model.aspect.value,
+        "skew": model.skew.value,
+        "principal_point": model.principal_point.value,
+        "focal_value": model.focal_value,
+        "aspect_value": model.aspect_value,
+        "skew_value": model.skew_value,
+        "principal_point_value": None
+        if model.principal_point_value is None
+        else [float(v) for v in model.principal_point_value],
+    }
+
+
+def model_from_dict(data: dict) -> IntrinsicsModel:
+    pp = data.get("principal_point_value")
+    return IntrinsicsModel(
+        focal=ParamMode(data["focal"]),
+        aspect=ParamMode(data["aspect"]),
+        skew=ParamMode(data["skew"]),
+        principal_point=ParamMode(data["principal_point"]),
+        focal_value=data.get("focal_value"),
+        aspect_value=data.get("aspect_value", 1.0),
+        skew_value=data.get("skew_value", 0.0),
+        principal_point_value=None if pp is None else (float(pp[0]), float(pp[1])),
+    )
