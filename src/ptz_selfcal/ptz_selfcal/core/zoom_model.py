@@ -1,0 +1,448 @@
+"""The learned zoom model: zoom encoder -> (f, principal point, k1, k2) with its uncertainty.
+
+What the calibrator learns while the camera zooms (DESIGN.md section 5.7) is summarised here so that a
+restarted calibrator, or a frame without a homography (tracking lost, status PREDICTED_FROM_ZOOM), gets
+a good K and D from the zoom encoder alone.
+
+- Bounded memory: samples are accumulated into zoom bins holding weighted running sums (count, sum w,
+  sum w z, sum w q, sum w q^2 for q in log f, cx, cy, k1, k2). When more than `max_bins` bins are
+  occupied the bin width doubles and neighbours merge (running sums merge exactly), so any encoder
+  range fits in O(max_bins) memory however long the camera runs.
+- zoom -> log f: a MONOTONE penalised cubic B-spline (non-decreasing coefficients give a non-decreasing
+  spline; the system knows only that f grows with zoom, DESIGN.md section 3). log f because zoom
+  lenses are close to exponential in their drive position. Outside the covered range log f is extended
+  linearly with the end slope and the uncertainty grows with the extrapolated change.
+- zoom -> cx, cy, k1, k2: the same penalised spline without the monotone constraint; constant outside
+  the covered range. k1, k2 enter the plumb_bob model linearly, so averaging them averages the curves.
+- Uncertainty: per bin, the standard error of the bin mean combined with the spline's misfit.
+- Persistence: YAML with a format name and version, written atomically (temporary file in the same
+  directory, flush + fsync, os.replace, directory fsync); any unreadable or invalid file raises
+  ZoomModelError so the caller starts fresh.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import math
+import os
+import re
+import tempfile
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+from scipy.interpolate import BSpline
+from scipy.optimize import lsq_linear
+
+from ptz_selfcal.core.geometry import intrinsic_matrix
+
+Array = NDArray[np.float64]
+
+FORMAT_NAME = "ptz_selfcal_zoom_model"
+FORMAT_VERSION = 1
+QUANTITIES = ("log_f", "cx", "cy", "k1", "k2")
+_SUM_FIELDS = ("n", "w", "wz", *(f"w_{q}" for q in QUANTITIES), *(f"w2_{q}" for q in QUANTITIES))
+
+
+class ZoomModelError(Exception):
+    """The zoom model file is missing, corrupt or invalid, or the model has no data yet."""
+
+
+class ZoomPrediction(NamedTuple):
+    K: Array  # 3x3, full-resolution pixels
+    D: Array  # plumb_bob [k1, k2, 0, 0, 0]
+    sigma_f: float  # 1-sigma of f in pixels
+    in_range: bool  # zoom inside the visited range (and not in a large gap)
+
+
+class _Fit(NamedTuple):
+    z_lo: float
+    z_hi: float
+    splines: dict[str, BSpline | None]  # None = constant
+    constants: dict[str, float]
+    end_slopes: tuple[float, float]  # d log f / dz at z_lo and z_hi
+    bin_z: Array
+    bin_sigma: dict[str, Array]  # per-bin 1-sigma of each quantity (fit + mean)
+
+
+def _design(x: Array, knots: Array, degree: int) -> Array:
+    return BSpline.design_matrix(np.clip(x, knots[0], knots[-1]), knots, degree).toarray()
+
+
+def _penalised_spline(
+    z: Array, y: Array, w: Array, n_basis: int, smoothing: float, monotone: bool
+) -> tuple[BSpline, Array]:
+    """Weighted P-spline (second-difference penalty), optionally with non-decreasing coefficients."""
+    degree = min(3, n_basis - 1)
+    lo, hi = float(z.min()), float(z.max())
+    interior = np.linspace(lo, hi, n_basis - degree + 1)[1:-1]
+    knots = np.concatenate([np.full(degree + 1, lo), interior, np.full(degree + 1, hi)])
+    B = _design(z, knots, degree)
+    # c = L p, p = (c0, increments): increments >= 0 makes the spline monotone
+    L = np.tril(np.ones((n_basis, n_basis))) if monotone else np.eye(n_basis)
+    D2 = np.diff(np.eye(n_basis), n=2, axis=0) if n_basis >= 3 else np.zeros((0, n_basis))
+    sw = np.sqrt(w / w.mean())
+    A = np.vstack([(B * sw[:, None]) @ L, np.sqrt(smoothing) * D2 @ L])
+    b = np.concatenate([y * sw, np.zeros(len(D2))])
+    if monotone:
+        lower = np.full(n_basis, 0.0)
+        lower[0] = -np.inf
+        p = lsq_linear(A, b, bounds=(lower, np.full(n_basis, np.inf)), method="bvls").x
+    else:
+        p = np.linalg.lstsq(A, b, rcond=None)[0]
+    c = L @ p
+    return BSpline(knots, c, degree, extrapolate=False), B @ c
+
+
+class ZoomModel:
+    """Learned zoom -> (K, D) model with bounded memory (see module docstring)."""
+
+    def __init__(
+        self,
+        max_bins: int = 64,
+        bin_width: float | None = None,
+        max_basis: int = 10,
+        smoothing: float = 1e-3,
+        gap_bins: float = 3.0,
+    ) -> None:
+        if max_bins < 4:
+            raise ValueError("max_bins must be >= 4")
+        self.max_bins = max_bins
+        self.bin_width = bin_width
+        self.max_basis = max_basis
+        self.smoothing = smoothing
+        self.gap_bins = gap_bins
+        self._bins: dict[int, Array] = {}
+        self._zoom_limits: tuple[float, float] | None = None  # lowest and highest zoom ever added
+        self._fit: _Fit | None = None
+
+    # ------------------------------------------------------------------------------------------ data
+    @property
+    def sample_count(self) -> int:
+        return int(sum(b[0] for b in self._bins.values()))
+
+    @property
+    def bin_count(self) -> int:
+        return len(self._bins)
+
+    def is_empty(self) -> bool:
+        return not self._bins
+
+    def covered_range(self) -> tuple[float, float] | None:
+        """(lowest, highest) zoom of the samples added, or None without data."""
+        return self._zoom_limits
+
+    def add_sample(
+        self,
+        zoom: float,
+        f: float,
+        cx: float,
+        cy: float,
+        k1: float = 0.0,
+        k2: float = 0.0,
+        weight: float = 1.0,
+    ) -> bool:
+        """Accumulate one calibrated frame; weight ~ 1 / sigma^2 (relative). Returns False if rejected."""
+        zoom, f, cx, cy, k1, k2, weight = (float(v) for v in (zoom, f, cx, cy, k1, k2, weight))
+        values = (zoom, f, cx, cy, k1, k2, weight)
+        if not all(math.isfinite(v) for v in values) or f <= 0.0 or weight <= 0.0:
+            return False
+        if self.bin_width is None:
+            self.bin_width = max(abs(zoom), 1.0) * 1e-6  # grows by doubling as the range is explored
+        key = math.floor(zoom / self.bin_width)
+        q = np.array([math.log(f), cx, cy, k1, k2])
+        row = np.concatenate([[1.0, weight, weight * zoom], weight * q, weight * q * q])
+        lo, hi = self._zoom_limits or (zoom, zoom)
+        self._zoom_limits = (min(lo, zoom), max(hi, zoom))
+        if key in self._bins:
+            self._bins[key] += row
+        else:
+            self._bins[key] = row
+        while len(self._bins) > self.max_bins:
+            self._coarsen()
+        self._fit = None
+        return True
+
+    def add_samples(self, samples: Iterable[tuple[float, ...]]) -> int:
+        """Add (zoom, f, cx, cy[, k1, k2[, weight]]) tuples; returns how many were accepted."""
+        return sum(self.add_sample(*s) for s in samples)
+
+    def _coarsen(self) -> None:
+        """Double the bin width; running sums of merged bins simply add."""
+        assert self.bin_width is not None
+        merged: dict[int, Array] = {}
+        for key, row in self._bins.items():
+            new = key // 2
+            merged[new] = merged[new] + row if new in merged else row.copy()
+        self._bins = merged
+        self.bin_width *= 2.0
+
+    def _bin_table(self) -> tuple[Array, Array, Array, Array, Array]:
+        """Per bin (sorted by zoom): mean zoom, count, total weight, means (B, 5), variances (B, 5)."""
+        rows = np.array([self._bins[k] for k in sorted(self._bins)])
+        n, w = rows[:, 0], rows[:, 1]
+        z = rows[:, 2] / w
+        mean = rows[:, 3:8] / w[:, None]
+        var = np.maximum(rows[:, 8:13] / w[:, None] - mean**2, 0.0)
+        return z, n, w, mean, var
+
+    # ------------------------------------------------------------------------------------------- fit
+    def _refit(self) -> _Fit:
+        if not self._bins:
+            raise ZoomModelError("the zoom model has no samples")
+        z, n, w, mean, var = self._bin_table()
+        n_bins = len(z)
+        # standard error of each bin mean: its own spread, or the pooled spread for single samples
+        pooled = np.sum(var * n[:, None], axis=0) / max(np.sum(np.maximum(n - 1, 0)), 1)
+        spread = np.where((n > 1)[:, None], var * n[:, None] / np.maximum(n - 1, 1)[:, None], pooled)
+        se = np.sqrt(spread / n[:, None])
+        splines: dict[str, BSpline | None] = {}
+        constants: dict[str, float] = {}
+        sigma: dict[str, Array] = {}
+        slopes = (0.0, 0.0)
+        n_basis = min(n_bins, self.max_basis)
+        for col, name in enumerate(QUANTITIES):
+            y = mean[:, col]
+            if n_bins == 1 or z.max() - z.min() <= 0.0:
+                splines[name] = None
+                constants[name] = float(np.average(y, weights=w))
+                fitted = np.full_like(y, constants[name])
+            else:
+                spline, fitted = _penalised_spline(
+                    z, y, w, n_basis, self.smoothing, monotone=(name == "log_f")
+                )
+                splines[name] = spline
+                constants[name] = float(np.average(y, weights=w))
+                if name == "log_f":
+                    d = spline.derivative()
+                    slopes = (max(float(d(z.min())), 0.0), max(float(d(z.max())), 0.0))
+            dof = max(n_bins - min(n_basis, n_bins), 1)
+            misfit2 = float(np.sum(n * (y - fitted) ** 2) / np.sum(n)) * n_bins / dof if n_bins > 1 else 0.0
+            sigma[name] = np.sqrt(se[:, col] ** 2 + misfit2)
+        return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma)
+
+    def _fitted(self) -> _Fit:
+        if self._fit is None:
+            self._fit = self._refit()
+        return self._fit
+
+    def _evaluate(self, fit: _Fit, name: str, zoom: float) -> float:
+        spline = fit.splines[name]
+        if spline is None:
+            return fit.constants[name]
+        zc = min(max(zoom, fit.z_lo), fit.z_hi)
+        value = float(spline(zc))
+        if name == "log_f":  # linear extension of log f with the end slope
+            value += fit.end_slopes[0] * (zoom - zc) if zoom < zc else fit.end_slopes[1] * (zoom - zc)
+        return value
+
+    def predict_parameters(self, zoom: float) -> dict[str, float]:
+        """f, cx, cy, k1, k2 and their 1-sigma (sigma_f in pixels), plus in_range."""
+        fit = self._fitted()
+        out = {name: self._evaluate(fit, name, zoom) for name in QUANTITIES}
+        out["f"] = math.exp(out.pop("log_f"))
+        zc = min(max(zoom, fit.z_lo), fit.z_hi)
+        sig = {name: float(np.interp(zc, fit.bin_z, s)) for name, s in fit.bin_sigma.items()}
+        extrapolated = abs(self._evaluate(fit, "log_f", zoom) - self._evaluate(fit, "log_f", zc))
+        out["sigma_f"] = out["f"] * (sig["log_f"] + 0.5 * extrapolated)
+        out["sigma_cx"], out["sigma_cy"] = sig["cx"], sig["cy"]
+        out["sigma_k1"], out["sigma_k2"] = sig["k1"], sig["k2"]
+        assert self.bin_width is not None
+        nearest = float(np.min(np.abs(fit.bin_z - zoom)))
+        lo, hi = self._zoom_limits or (fit.z_lo, fit.z_hi)
+        out["in_range"] = bool(lo <= zoom <= hi and nearest <= self.gap_bins * self.bin_width)
+        return out
+
+    def predict(self, zoom: float) -> ZoomPrediction:
+        """K (square pixels, zero skew) and plumb_bob D at a zoom encoder value; ZoomModelError if empty."""
+        p = self.predict_parameters(zoom)
+        K = intrinsic_matrix(p["f"], p["cx"], p["cy"])
+        D = np.array([p["k1"], p["k2"], 0.0, 0.0, 0.0])
+        return ZoomPrediction(K, D, float(p["sigma_f"]), bool(p["in_range"]))
+
+    # ----------------------------------------------------------------------------------- persistence
+    def to_dict(self) -> dict[str, Any]:
+        bins = [
+            {"key": int(k), **{name: float(v) for name, v in zip(_SUM_FIELDS, self._bins[k])}}
+            for k in sorted(self._bins)
+        ]
+        summary = []
+        if self._bins:
+            for z in self._bin_table()[0]:
+                p = self.predict_parameters(float(z))
+                summary.append({"zoom": float(z), "f": p["f"], "cx": p["cx"], "cy": p["cy"], "k1": p["k1"]})
+        return {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "settings": {
+                "max_bins": self.max_bins,
+                "bin_width": self.bin_width,
+                "max_basis": self.max_basis,
+                "smoothing": self.smoothing,
+                "gap_bins": self.gap_bins,
+            },
+            "zoom_limits": None if self._zoom_limits is None else [float(v) for v in self._zoom_limits],
+            "bins": bins,
+            "summary": summary,  # for humans; ignored on load (the model is refitted from the bins)
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> ZoomModel:
+        """Rebuild from to_dict() output; ZoomModelError on anything invalid."""
+        if not isinstance(data, dict):
+            raise ZoomModelError("zoom model file is not a mapping")
+        if data.get("format") != FORMAT_NAME:
+            raise ZoomModelError(f"not a zoom model file (format {data.get('format')!r})")
+        if data.get("version") != FORMAT_VERSION:
+            raise ZoomModelError(f"unsupported zoom model version {data.get('version')!r}")
+        settings, bins = data.get("settings"), data.get("bins")
+        if not isinstance(settings, dict) or not isinstance(bins, list):
+            raise ZoomModelError("zoom model file lacks settings or bins")
+        try:
+            width = settings.get("bin_width")
+            model = cls(
+                max_bins=int(settings["max_bins"]),
+                bin_width=None if width is None else float(width),
+                max_basis=int(settings["max_basis"]),
+                smoothing=float(settings["smoothing"]),
+                gap_bins=float(settings["gap_bins"]),
+            )
+            for entry in bins:
+                row = np.array([float(entry[name]) for name in _SUM_FIELDS])
+                key = int(entry["key"])
+                if not np.all(np.isfinite(row)) or row[0] < 1 or row[1] <= 0.0 or key in model._bins:
+                    raise ZoomModelError(f"invalid zoom model bin {key}")
+                model._bins[key] = row
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ZoomModelError(f"invalid zoom model file: {exc}") from exc
+        limits = data.get("zoom_limits")
+        if model._bins:
+            try:
+                lo, hi = (float(v) for v in limits)
+            except (TypeError, ValueError) as exc:
+                raise ZoomModelError("invalid zoom_limits") from exc
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise ZoomModelError("invalid zoom_limits")
+            model._zoom_limits = (lo, hi)
+        if model._bins and (model.bin_width is None or not model.bin_width > 0.0):
+            raise ZoomModelError("invalid bin width")
+        if len(model._bins) > model.max_bins:
+            raise ZoomModelError("more bins than max_bins")
+        if model._bins:
+            try:
+                model._fitted()
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                raise ZoomModelError(f"zoom model cannot be fitted: {exc}") from exc
+        return model
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the model atomically: temp file in the same directory, fsync, os.replace.
+
+        Temporary files left by a writer killed earlier (older than a minute) are removed first.
+        """
+        path = Path(path)
+        _remove_stale_temporaries(path)
+        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> ZoomModel:
+        """Load a saved model; ZoomModelError (never another exception) if missing, corrupt or invalid."""
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+            data = yaml.safe_load(text)
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+            raise ZoomModelError(f"cannot read zoom model {path}: {exc}") from exc
+        return cls.from_dict(data)
+
+    @classmethod
+    def load_or_new(cls, path: str | os.PathLike[str], **kwargs: Any) -> tuple[ZoomModel, str | None]:
+        """The saved model, or a fresh one and the reason the saved one was not usable."""
+        if not Path(path).exists():
+            return cls(**kwargs), None
+        try:
+            return cls.load(path), None
+        except ZoomModelError as exc:
+            return cls(**kwargs), str(exc)
+
+    # ----------------------------------------------------------------------------- ROS calibrations
+    def export_camera_calibration_yaml(
+        self,
+        directory: str | os.PathLike[str],
+        zoom_values: Iterable[float],
+        width: int,
+        height: int,
+        camera_name: str,
+    ) -> list[Path]:
+        """Per-zoom calibration files in the camera_calibration_parsers YAML format (one per zoom)."""
+        out_dir = Path(directory)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        paths = []
+        for zoom in zoom_values:
+            K, D, _, _ = self.predict(float(zoom))
+            text = camera_calibration_yaml(K, D, width, height, camera_name)
+            path = out_dir / f"{_safe_name(camera_name)}_zoom_{_safe_name(f'{float(zoom):g}')}.yaml"
+            atomic_write_text(path, text)
+            paths.append(path)
+        return paths
+
+
+def _safe_name(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", text)
+
+
+def _matrix_yaml(name: str, rows: int, cols: int, data: Array) -> str:
+    values = ", ".join(f"{float(v):.10g}" for v in np.asarray(data, dtype=float).ravel())
+    return f"{name}:\n  rows: {rows}\n  cols: {cols}\n  data: [{values}]\n"
+
+
+def camera_calibration_yaml(K: Array, D: Array, width: int, height: int, camera_name: str) -> str:
+    """The text camera_calibration / camera_calibration_parsers write (R = I, P = [K | 0])."""
+    K = np.asarray(K, dtype=float)
+    P = np.hstack([K, np.zeros((3, 1))])
+    return (
+        f"image_width: {int(width)}\n"
+        f"image_height: {int(height)}\n"
+        f"camera_name: {camera_name}\n"
+        + _matrix_yaml("camera_matrix", 3, 3, K)
+        + "distortion_model: plumb_bob\n"
+        + _matrix_yaml("distortion_coefficients", 1, 5, np.asarray(D, dtype=float).ravel()[:5])
+        + _matrix_yaml("rectification_matrix", 3, 3, np.eye(3))
+        + _matrix_yaml("projection_matrix", 3, 4, P)
+    )
+
+
+def _remove_stale_temporaries(path: Path, age_s: float = 60.0) -> None:
+    if not path.parent.is_dir():
+        return
+    now = time.time()
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        with contextlib.suppress(OSError):
+            if now - tmp.stat().st_mtime > age_s:
+                tmp.unlink()
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write text so that path holds either the old or the new content, whatever happens."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as stream:
+            stream.write(text)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # make the rename durable (not available on every platform)
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)

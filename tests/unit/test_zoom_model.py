@@ -1,0 +1,264 @@
+"""The learned zoom model: monotone fit, bounded memory, atomic persistence, ROS calibration export."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ptz_selfcal.core import zoom_model as zm
+from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
+from ptz_selfcal.core.geometry import intrinsic_matrix
+from ptz_selfcal.core.zoom_model import ZoomModel, ZoomModelError
+
+W, H = 1280, 720
+SRC = str(Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal")
+
+
+def f_true(zoom):
+    """A 1x -> 3x zoom lens, close to exponential in the encoder (0 .. 1000)."""
+    return 1108.0 * np.exp(np.log(3.0) * (np.asarray(zoom, dtype=float) / 1000.0) ** 1.3)
+
+
+def cx_true(zoom):
+    return 640.0 + 0.012 * np.asarray(zoom, dtype=float)  # the principal point drifts with zoom
+
+
+def k12_true(zoom):
+    f = float(f_true(zoom))
+    lam = division_lambda_for_corner_shift(0.12 * 1108.0 / f, W, H, f)
+    return division_to_plumb_bob(lam, intrinsic_matrix(f, float(cx_true(zoom)), 360.0), W, H)
+
+
+def noisy_model(n=1500, zoom_range=(100.0, 900.0), noise_f=0.01, seed=0, **kwargs):
+    rng = np.random.default_rng(seed)
+    model = ZoomModel(**kwargs)
+    for z in rng.uniform(*zoom_range, n):
+        f = float(f_true(z)) * (1.0 + rng.normal(0.0, noise_f))
+        model.add_sample(z, f, float(cx_true(z)) + rng.normal(0, 2.0), 360.0 + rng.normal(0, 2.0), -0.3, 0.1)
+    return model
+
+
+def test_monotone_fit_recovers_zoom_to_focal_within_one_percent():
+    model = noisy_model()
+    lo, hi = model.covered_range()
+    assert lo == pytest.approx(100.0, abs=2.0) and hi == pytest.approx(900.0, abs=2.0)
+    grid = np.linspace(lo, hi, 400)
+    f = np.array([model.predict(z).K[0, 0] for z in grid])
+    rel = np.abs(f / f_true(grid) - 1.0)
+    assert rel.max() < 0.01 and np.median(rel) < 0.003
+    assert np.all(np.diff(f) >= 0.0)  # monotone despite 1% noise per sample
+    cx = np.array([model.predict(z).K[0, 2] for z in grid])
+    assert np.abs(cx - cx_true(grid)).max() < 1.0
+    # the reported uncertainty is of the size of the error, not zero and not wild
+    sigma = np.array([model.predict(z).sigma_f for z in grid]) / f
+    assert np.all(sigma > 0.0) and np.median(sigma) < 0.01
+    assert np.median(rel) < 3.0 * np.median(sigma)
+
+
+def test_monotone_even_when_data_are_locally_decreasing():
+    model = ZoomModel()
+    rng = np.random.default_rng(1)
+    for z in rng.uniform(0.0, 100.0, 300):
+        f = 1000.0 + 5.0 * z - (200.0 if 40.0 < z < 50.0 else 0.0)  # a glitch in the estimates
+        model.add_sample(z, f, 640.0, 360.0)
+    f = np.array([model.predict(z).K[0, 0] for z in np.linspace(0.0, 100.0, 500)])
+    assert np.all(np.diff(f) >= -1e-9)
+
+
+def test_distortion_and_principal_point_follow_zoom():
+    rng = np.random.default_rng(2)
+    model = ZoomModel()
+    for z in rng.uniform(0.0, 1000.0, 800):
+        k1, k2 = k12_true(z)
+        model.add_sample(z, float(f_true(z)), float(cx_true(z)), 360.0, k1 + rng.normal(0, 0.002), k2)
+    for z in (50.0, 500.0, 950.0):
+        p = model.predict(z)
+        k1, k2 = k12_true(z)
+        assert p.D[0] == pytest.approx(k1, abs=0.01) and p.D[2:].tolist() == [0.0, 0.0, 0.0]
+        assert p.K[0, 2] == pytest.approx(float(cx_true(z)), abs=0.5) and p.K[1, 1] == p.K[0, 0]
+
+
+def test_bounded_memory_over_a_long_run():
+    rng = np.random.default_rng(3)
+    model = ZoomModel(max_bins=32)
+    zooms = rng.uniform(0.0, 16384.0, 20000)
+    for z in zooms:
+        model.add_sample(z, 1000.0 * np.exp(z / 16384.0), 640.0, 360.0)
+    assert model.bin_count <= 32 and model.sample_count == 20000
+    assert model.predict(8000.0).K[0, 0] == pytest.approx(1000.0 * np.exp(8000.0 / 16384.0), rel=0.005)
+
+
+def test_extrapolation_is_flagged_and_uncertain():
+    model = noisy_model(n=600)
+    inside = model.predict(500.0)
+    outside = model.predict(1000.0)
+    assert inside.in_range and not outside.in_range
+    assert outside.sigma_f / outside.K[0, 0] > 3.0 * inside.sigma_f / inside.K[0, 0]
+    assert outside.K[0, 0] > model.predict(900.0).K[0, 0]  # log f extended with the end slope
+    with pytest.raises(ZoomModelError):
+        ZoomModel().predict(10.0)
+    assert not ZoomModel().add_sample(1.0, float("nan"), 640.0, 360.0)
+
+
+def test_save_load_round_trip_and_restart_prediction(tmp_path):
+    model = noisy_model(n=800)
+    path = tmp_path / "state" / "zoom_model.yaml"
+    model.save(path)
+    restarted = ZoomModel.load(path)
+    for z in (150.0, 420.0, 880.0):
+        a, b = model.predict(z), restarted.predict(z)
+        np.testing.assert_allclose(a.K, b.K, rtol=1e-12)
+        assert a.sigma_f == pytest.approx(b.sigma_f, rel=1e-9) and a.in_range == b.in_range
+        # a restarted calibrator starts within 1% of the true focal length at its first frame
+        assert abs(b.K[0, 0] / float(f_true(z)) - 1.0) < 0.01
+    assert yaml.safe_load(path.read_text())["version"] == zm.FORMAT_VERSION
+    assert [p.name for p in path.parent.iterdir()] == ["zoom_model.yaml"]  # no temporary left
+
+
+def test_exception_between_write_and_rename_keeps_old_file(tmp_path, monkeypatch):
+    path = tmp_path / "zoom_model.yaml"
+    old = noisy_model(n=200, seed=4)
+    old.save(path)
+    before = path.read_bytes()
+
+    def failing_replace(src, dst):
+        raise OSError("simulated crash before rename")
+
+    monkeypatch.setattr(zm.os, "replace", failing_replace)
+    with pytest.raises(OSError):
+        noisy_model(n=300, seed=5).save(path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before
+    assert ZoomModel.load(path).predict(500.0).K[0, 0] == pytest.approx(old.predict(500.0).K[0, 0])
+    assert [p.name for p in tmp_path.iterdir()] == ["zoom_model.yaml"]
+
+
+def test_process_killed_while_writing_leaves_old_file_loadable(tmp_path):
+    """A real process is SIGKILLed halfway through writing the new model (its data already on disk)."""
+    path = tmp_path / "zoom_model.yaml"
+    old = noisy_model(n=200, seed=6)
+    old.save(path)
+    before = path.read_bytes()
+    child = textwrap.dedent(
+        f"""
+        import os, sys, time
+        sys.path.insert(0, {SRC!r})
+        from ptz_selfcal.core import zoom_model as zm
+        model = zm.ZoomModel()
+        for z in range(0, 1000, 3):
+            model.add_sample(float(z), 2000.0 + z, 600.0, 300.0, -0.1, 0.01)
+        real_fdopen = os.fdopen
+
+        class HalfWriter:
+            def __init__(self, stream):
+                self.stream = stream
+            def __enter__(self):
+                return self
+            def __exit__(self, *exc):
+                return False
+            def write(self, text):
+                self.stream.write(text[: len(text) // 2])
+                self.stream.flush()
+                os.fsync(self.stream.fileno())
+                print("half written", flush=True)
+                time.sleep(60)
+
+        zm.os.fdopen = lambda fd, *a, **k: HalfWriter(real_fdopen(fd, *a, **k))
+        model.save({str(path)!r})
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "half written"
+        proc.kill()
+    finally:
+        proc.wait(timeout=30)
+    assert proc.returncode == -9
+    leftovers = [p for p in tmp_path.iterdir() if p.name != "zoom_model.yaml"]
+    assert len(leftovers) == 1 and leftovers[0].stat().st_size > 0  # the killed writer's half file
+    assert path.read_bytes() == before
+    restarted, reason = ZoomModel.load_or_new(path)
+    assert reason is None
+    assert restarted.predict(500.0).K[0, 0] == pytest.approx(old.predict(500.0).K[0, 0])
+    # the next save succeeds and cleans stale temporaries once they are old
+    os.utime(leftovers[0], (0, 0))
+    restarted.save(path)
+    assert [p.name for p in tmp_path.iterdir()] == ["zoom_model.yaml"]
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        "",
+        "format: ptz_selfcal_zoom_model\nversion: 1\nsettings: {max_bins: 64",  # truncated
+        "\x00\x01\x02 not yaml: [",
+        "- just\n- a list\n",
+        "format: something_else\nversion: 1\n",
+        "format: ptz_selfcal_zoom_model\nversion: 99\nsettings: {}\nbins: []\n",
+        "format: ptz_selfcal_zoom_model\nversion: 1\nsettings: {max_bins: 64}\nbins: []\n",
+    ],
+)
+def test_corrupt_file_gives_zoom_model_error_and_fresh_start(tmp_path, content):
+    path = tmp_path / "zoom_model.yaml"
+    path.write_text(content)
+    with pytest.raises(ZoomModelError):
+        ZoomModel.load(path)
+    model, reason = ZoomModel.load_or_new(path)
+    assert model.is_empty() and reason
+
+
+def test_invalid_numbers_in_a_well_formed_file(tmp_path):
+    path = tmp_path / "zoom_model.yaml"
+    noisy_model(n=100).save(path)
+    data = yaml.safe_load(path.read_text())
+    data["bins"][0]["w_log_f"] = float("nan")
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ZoomModelError, match="bin"):
+        ZoomModel.load(path)
+    data["bins"][0] = {"key": 0, "n": "many"}
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ZoomModelError):
+        ZoomModel.load(path)
+    with pytest.raises(ZoomModelError):
+        ZoomModel.load(tmp_path / "missing.yaml")
+    assert ZoomModel.load_or_new(tmp_path / "missing.yaml")[1] is None
+
+
+def test_export_camera_calibration_yaml(tmp_path):
+    model = noisy_model(n=500)
+    paths = model.export_camera_calibration_yaml(tmp_path / "calib", [100, 500.5, 900], W, H, "ptz cam")
+    assert [p.name for p in paths] == [
+        "ptz_cam_zoom_100.yaml",
+        "ptz_cam_zoom_500.5.yaml",
+        "ptz_cam_zoom_900.yaml",
+    ]
+    for path, zoom in zip(paths, (100, 500.5, 900)):
+        data = yaml.safe_load(path.read_text())
+        assert list(data) == [
+            "image_width",
+            "image_height",
+            "camera_name",
+            "camera_matrix",
+            "distortion_model",
+            "distortion_coefficients",
+            "rectification_matrix",
+            "projection_matrix",
+        ]
+        assert (data["image_width"], data["image_height"], data["camera_name"]) == (W, H, "ptz cam")
+        assert data["distortion_model"] == "plumb_bob"
+        K = np.array(data["camera_matrix"]["data"]).reshape(3, 3)
+        pred = model.predict(zoom)
+        np.testing.assert_allclose(K, pred.K, rtol=1e-9)
+        assert data["distortion_coefficients"]["rows"] == 1 and data["distortion_coefficients"]["cols"] == 5
+        np.testing.assert_allclose(data["distortion_coefficients"]["data"], pred.D, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(np.array(data["rectification_matrix"]["data"]), np.eye(3).ravel())
+        P = np.array(data["projection_matrix"]["data"]).reshape(3, 4)
+        np.testing.assert_allclose(P, np.hstack([pred.K, np.zeros((3, 1))]), rtol=1e-9)
