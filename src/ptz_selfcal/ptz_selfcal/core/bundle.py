@@ -22,6 +22,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from ptz_selfcal.core.degeneracy import analyse_motion
 from ptz_selfcal.core.intrinsics import (
     ASPECT,
     CX,
@@ -419,6 +420,7 @@ def bundle_adjust(
     max_iterations: int = 50,
     f_min: float | None = None,
     tolerance: float = 1e-10,
+    analyse: bool = True,
 ) -> SelfCalibrationResult:
     """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
 
@@ -429,7 +431,8 @@ def bundle_adjust(
     noise_sigma: the image noise level, which weighs the prior against the reprojection errors
     (eq. 27 as printed is noise_sigma = 1 px). f_min: lower bound on the focal length (default a tenth
     of the image width). Uncertainties are 1-sigma from the reduced normal equations scaled by the
-    residual variance; `residual` is the rms reprojection error in pixels.
+    residual variance; `residual` is the rms reprojection error in pixels. With analyse, the result
+    carries a MotionReport (section 6) and ok is False when the motion is not well posed.
     """
     K0 = np.asarray(K_init, dtype=float).reshape(-1, 3, 3)
     R_in = np.asarray(R_init, dtype=float).reshape(-1, 3, 3)
@@ -466,9 +469,15 @@ def bundle_adjust(
         sigma = np.asarray(pp_prior[1], dtype=float).reshape(2)
         prior = (mean, sigma, float(noise_sigma))
     layout = _layout(model, n, prior is not None)
-    return _levenberg_marquardt(
+    result = _levenberg_marquardt(
         state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model
     )
+    if analyse:
+        result.motion = analyse_motion(result.R, result.K, image_size, sigma_f=result.sigma_f)
+        if result.ok and not result.motion.well_posed:
+            result.ok = False
+            result.message = f"motion not well posed: {result.motion.status} ({result.motion.message})"
+    return result
 
 
 def _cost(r: Array, prior_r: Array) -> float:
