@@ -262,3 +262,19 @@ def test_export_camera_calibration_yaml(tmp_path):
         np.testing.assert_allclose(np.array(data["rectification_matrix"]["data"]), np.eye(3).ravel())
         P = np.array(data["projection_matrix"]["data"]).reshape(3, 4)
         np.testing.assert_allclose(P, np.hstack([pred.K, np.zeros((3, 1))]), rtol=1e-9)
+
+
+def test_fit_from_calibration_arrays_and_incremental_update():
+    rng = np.random.default_rng(7)
+    zooms = rng.uniform(0.0, 1000.0, 200)
+    Ks = np.array([intrinsic_matrix(float(f_true(z)), float(cx_true(z)), 360.0) for z in zooms])
+    Ds = np.tile([-0.2, 0.05, 0.0, 0.0, 0.0], (len(zooms), 1))
+    model = zm.fit_zoom_model(zooms, Ks, Ds)
+    assert model.ready() and not ZoomModel().ready()
+    assert model.predict(500.0).K[0, 0] == pytest.approx(float(f_true(500.0)), rel=0.002)
+    assert model.predict(500.0).D[0] == pytest.approx(-0.2, abs=1e-9)
+    assert 0.0 < model.sigma_f(500.0) < 0.01 * float(f_true(500.0))
+    before = model.sample_count
+    assert model.add_calibrations(zooms[:10], Ks[:10]) == 10 and model.sample_count == before + 10
+    with pytest.raises(ValueError):
+        model.add_calibrations(zooms[:3], Ks[:2])

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import yaml
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline
 from scipy.optimize import lsq_linear
 
@@ -171,6 +171,45 @@ class ZoomModel:
     def add_samples(self, samples: Iterable[tuple[float, ...]]) -> int:
         """Add (zoom, f, cx, cy[, k1, k2[, weight]]) tuples; returns how many were accepted."""
         return sum(self.add_sample(*s) for s in samples)
+
+    def add_calibrations(
+        self, zooms: ArrayLike, Ks: ArrayLike, Ds: ArrayLike | None = None, weights: ArrayLike | None = None
+    ) -> int:
+        """Accumulate arrays of calibrations: zooms (N,), Ks (N, 3, 3) full-resolution, Ds (N, >=2)
+        plumb_bob or None, weights (N,) or None. f = fx. Returns how many were accepted."""
+        zooms = np.asarray(zooms, dtype=float).ravel()
+        Ks = np.asarray(Ks, dtype=float).reshape(-1, 3, 3)
+        Ds = np.zeros((len(zooms), 2)) if Ds is None else np.asarray(Ds, dtype=float).reshape(len(zooms), -1)
+        w = np.ones(len(zooms)) if weights is None else np.asarray(weights, dtype=float).ravel()
+        if not (len(Ks) == len(Ds) == len(w) == len(zooms)) or Ds.shape[1] < 2:
+            raise ValueError("zooms, Ks, Ds and weights must have the same length (Ds >= 2 columns)")
+        return sum(
+            self.add_sample(z, K[0, 0], K[0, 2], K[1, 2], D[0], D[1], wk)
+            for z, K, D, wk in zip(zooms, Ks, Ds, w)
+        )
+
+    @classmethod
+    def fit(
+        cls,
+        zooms: ArrayLike,
+        Ks: ArrayLike,
+        Ds: ArrayLike | None = None,
+        weights: ArrayLike | None = None,
+        **kwargs: Any,
+    ) -> ZoomModel:
+        """A new model from arrays of calibrations (see add_calibrations). To keep what a reloaded
+        model already learned, call add_calibrations on it instead."""
+        model = cls(**kwargs)
+        model.add_calibrations(zooms, Ks, Ds, weights)
+        return model
+
+    def ready(self) -> bool:
+        """True once predict() can answer (at least one sample)."""
+        return bool(self._bins)
+
+    def sigma_f(self, zoom: float) -> float:
+        """1-sigma of the predicted focal length in pixels at this zoom."""
+        return float(self.predict_parameters(zoom)["sigma_f"])
 
     def _coarsen(self) -> None:
         """Double the bin width; running sums of merged bins simply add."""
@@ -446,3 +485,14 @@ def atomic_write_text(path: Path, text: str) -> None:
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def fit_zoom_model(
+    zooms: ArrayLike,
+    Ks: ArrayLike,
+    Ds: ArrayLike | None = None,
+    weights: ArrayLike | None = None,
+    **kwargs: Any,
+) -> ZoomModel:
+    """Module-level ZoomModel.fit."""
+    return ZoomModel.fit(zooms, Ks, Ds, weights, **kwargs)
