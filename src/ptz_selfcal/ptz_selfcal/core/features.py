@@ -139,8 +139,10 @@ def robust_homography(
     params: cv2.UsacParams,
     min_inliers: int,
     refine_iterations: int = 20,
+    sigma_factor: float = 4.0,
 ) -> RobustFit | None:
-    """MAGSAC homography src -> dst, then LM on the transfer error of the inliers (section 4.2)."""
+    """MAGSAC homography src -> dst, then LM on the transfer error of the inliers (section 4.2),
+    re-selecting the inliers at sigma_factor robust standard deviations of their residuals."""
     if len(src) < max(min_inliers, 4):
         return None
     src64 = np.asarray(src, np.float64).reshape(-1, 2)
@@ -154,11 +156,14 @@ def robust_homography(
     inliers = mask.ravel().astype(bool)
     if inliers.sum() < min_inliers:
         return None
-    threshold = params.threshold
-    for _ in range(2):
+    for _ in range(3):
         H = refine_homography(H, src64[inliers], dst64[inliers], max_nfev=refine_iterations)
         residual = np.linalg.norm(apply_homography(H, src64) - dst64, axis=1)
-        updated = residual < threshold
+        # Adaptive cut-off: sigma from the MAD of the inliers, so points biased by a partly occluded
+        # window (within the MAGSAC threshold but far out of the noise) stop pulling the fit.
+        sigma = 1.4826 * float(np.median(residual[inliers]))
+        cutoff = min(params.threshold, max(sigma_factor * sigma, 0.1 * params.threshold))
+        updated = residual < cutoff
         if updated.sum() < min_inliers:
             return None
         if np.array_equal(updated, inliers):

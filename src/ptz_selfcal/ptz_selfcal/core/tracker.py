@@ -64,7 +64,7 @@ class TrackerConfig:
     # KLT source: "warped" = keyframe warped by the predicted homography (no drift, no zoom bias),
     # "keyframe" = keyframe image seeded by the prediction, "frame" = previous frame (classic KLT).
     klt_source: str = "warped"
-    ransac_threshold: float = 2.0  # full-resolution pixels
+    ransac_threshold: float = 1.0  # full-resolution pixels
     ransac_max_iterations: int = 1000
     ransac_confidence: float = 0.999
     refine_iterations: int = 20
@@ -82,6 +82,7 @@ class TrackerConfig:
     descriptor_ratio: float = 0.8
     relocalise_candidates: int = 6  # keyframes tried per lost frame
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
+    repeat_threshold: float = 0.5  # re-warp and re-track when the prediction was off by more (full px)
     gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
     seed: int = 0
 
@@ -191,12 +192,17 @@ class HomographyTracker:
     def _track_frame(self, image: np.ndarray, stamp: float | None) -> TrackResult:
         c = self.config
         keyframe = self._keyframes[self._keyframe_id]
-        current, ok = self._klt_tracks(keyframe, image)
+        current, ok, H_pred = self._klt_tracks(keyframe, image)
+        fit = self._fit_tracks(current, ok)
+        # Second warp + KLT pass when the prediction was poor: the residual then has (almost) no
+        # scale/rotation left for translational KLT to be biased by (Gauss-Newton on the warp).
+        repeat = fit is not None and c.klt_source == "warped" and c.repeat_threshold > 0.0
+        if repeat and _deviation(fit.H, H_pred, image.shape) > c.repeat_threshold * self._scale:
+            current2, ok2 = self._warped_klt(keyframe, image, fit.H, levels=1)
+            fit2 = self._fit_tracks(current2, ok2)
+            if fit2 is not None and fit2.inliers.sum() >= 0.8 * fit.inliers.sum():
+                current, ok, fit = current2, ok2, fit2
         match_count = int(ok.sum())
-        fit = None
-        if match_count >= c.min_inliers:
-            fit = robust_homography(self._tracks.in_keyframe[ok], current[ok], self._usac(), c.min_inliers,
-                                    c.refine_iterations)  # fmt: skip
         if fit is None or fit.inliers.sum() < c.min_inlier_ratio * max(match_count, 1):
             return self._lose(image, stamp, match_count)
         keep = np.flatnonzero(ok)[fit.inliers]
@@ -214,28 +220,46 @@ class HomographyTracker:
             inlier_count=inlier_count, match_count=match_count, rms_transfer_error=fit.rms / self._scale,
         )  # fmt: skip
 
-    def _klt_tracks(self, keyframe: Keyframe, image: np.ndarray) -> tuple[Points, NDArray[np.bool_]]:
-        """Track positions in the current frame: frame to frame, or straight from the keyframe image
-        seeded by a constant-velocity prediction of the keyframe -> frame homography (no drift)."""
+    def _fit_tracks(self, current: Points, ok: NDArray[np.bool_]) -> RobustFit | None:
+        """Keyframe -> frame homography (working pixels) from the tracks that survived KLT."""
+        c = self.config
+        if ok.sum() < c.min_inliers:
+            return None
+        return robust_homography(self._tracks.in_keyframe[ok], current[ok], self._usac(), c.min_inliers,
+                                 c.refine_iterations)  # fmt: skip
+
+    def _klt_tracks(self, keyframe: Keyframe, image: np.ndarray) -> tuple[Points, NDArray[np.bool_], Array]:
+        """Track positions in the current frame and the predicted keyframe -> frame H (working px):
+        frame to frame, or straight from the keyframe seeded by a constant-velocity prediction."""
         tracks, source = self._tracks, self.config.klt_source
+        H_pred = tracks.H_last @ np.linalg.inv(tracks.H_previous) @ tracks.H_last
         if source == "frame":
             previous = self._gain_matched(self._previous, image)
-            return track_klt(previous, image, tracks.current, self._klt)
-        H_pred = tracks.H_last @ np.linalg.inv(tracks.H_previous) @ tracks.H_last
-        guess = apply_homography(H_pred, tracks.in_keyframe).astype(np.float32)
-        bad = ~np.all(np.isfinite(guess), axis=1)
-        guess[bad] = tracks.current[bad]
+            return (*track_klt(previous, image, tracks.current, self._klt), H_pred)
         if source == "keyframe":
+            guess = self._predicted_positions(H_pred)
             reference = self._gain_matched(keyframe.image, image)
-            return track_klt(reference, image, tracks.in_keyframe, self._klt, initial=guess)
-        # Inverse-compositional flavour: the keyframe resampled into the predicted current geometry, so
-        # KLT only measures the small residual motion between two images of equal scale and rotation.
+            return (*track_klt(reference, image, tracks.in_keyframe, self._klt, initial=guess), H_pred)
+        return (*self._warped_klt(keyframe, image, H_pred), H_pred)
+
+    def _predicted_positions(self, H_pred: Array) -> Points:
+        guess = apply_homography(H_pred, self._tracks.in_keyframe).astype(np.float32)
+        bad = ~np.all(np.isfinite(guess), axis=1)
+        guess[bad] = self._tracks.current[bad]
+        return guess
+
+    def _warped_klt(
+        self, keyframe: Keyframe, image: np.ndarray, H_pred: Array, levels: int | None = None
+    ) -> tuple[Points, NDArray[np.bool_]]:
+        """Inverse-compositional flavour of KLT: the keyframe resampled into the predicted current
+        geometry, so KLT only measures the small residual motion between images of equal scale."""
         h, w = image.shape
+        guess = self._predicted_positions(H_pred)
         warped = self._gain_matched_warp(cv2.warpPerspective(keyframe.image, H_pred, (w, h)), image)
-        found, ok = track_klt(warped, image, guess, self._klt, initial=guess, levels=2)
+        found, ok = track_klt(warped, image, guess, self._klt, initial=guess, levels=levels)
         margin = self.config.klt_window // 2 + 1
         kh, kw = keyframe.image.shape
-        pts = tracks.in_keyframe
+        pts = self._tracks.in_keyframe
         ok &= np.all(pts >= margin, axis=1) & (pts[:, 0] <= kw - 1 - margin) & (pts[:, 1] <= kh - 1 - margin)
         return found, ok
 
