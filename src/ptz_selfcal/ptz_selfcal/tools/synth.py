@@ -1,0 +1,503 @@
+"""`ptz-selfcal synth PANORAMA OUT_BAG`: a PTZ camera rendered from an equirectangular panorama.
+
+Writes a ROS 2 bag (mcap by default) with the topics of DESIGN.md section 3 (NS = --namespace, /ptz):
+  NS/image_raw/compressed        sensor_msgs/CompressedImage (--format jpeg|png), or
+  NS/image_raw                   sensor_msgs/Image (--format mono8|bgr8)
+  NS/joint_states                sensor_msgs/JointState: encoders pan, tilt (rad), zoom (counts), own rate,
+                                 lag and noise (core/render.py EncoderModel: stamp t = state at t - lag,
+                                 so an ingest's time_offset is -lag)
+  NS/ground_truth/camera_info    sensor_msgs/CameraInfo per image, same stamp: the true K, P = [K|0],
+                                 R = I; distortion_model "plumb_bob" with D = 0 when the lens has no
+                                 distortion, else "division" with D = [lam] (exact: core/distortion.py)
+  NS/ground_truth/joint_states   sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
+and OUT_BAG/synth_params.yaml (every parameter, for evaluation and reproduction). The bag is written to
+a temporary directory beside OUT_BAG and renamed at the end: nothing is left half-written. The same
+arguments give the same bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ptz_selfcal.core.distortion import DIVISION, PLUMB_BOB
+from ptz_selfcal.core.render import (
+    CameraProfile,
+    CameraState,
+    EncoderModel,
+    ImageModel,
+    Panorama,
+    ZoomEncoder,
+    build_panorama,
+    focal_from_hfov,
+    is_equirectangular,
+    render_view,
+)
+from ptz_selfcal.tools.cli import CliError
+
+FORMATS = ("jpeg", "png", "mono8", "bgr8")
+DEFAULT_START = 1_767_225_600  # 2026-01-01T00:00:00Z: a fixed epoch keeps the bytes reproducible
+JOINTS = ("pan", "tilt", "zoom")
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+JOINT_TYPE = "sensor_msgs/msg/JointState"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("panorama", help="equirectangular image (width = 2 x height), e.g. a 360 panorama")
+    parser.add_argument("out_bag", help="new bag directory (refuses an existing path)")
+    g = parser.add_argument_group("sequence")
+    g.add_argument("--frames", type=int, default=300, help="number of images (default 300)")
+    g.add_argument("--width", type=int, default=1280, help="image width in pixels (default 1280)")
+    g.add_argument("--height", type=int, default=720, help="image height in pixels (default 720)")
+    g.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    g.add_argument("--start-time", type=float, default=DEFAULT_START, help="first image stamp, seconds")
+    g = parser.add_argument_group("camera motion and lens")
+    g.add_argument("--f-wide", type=float, help="focal length at the wide end, pixels (default: from --hfov)")
+    g.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view at the wide end, deg")
+    g.add_argument("--zoom-max", type=float, default=3.0, help="largest zoom ratio (1 -> max -> 1)")
+    g.add_argument("--pan-amplitude", type=float, default=40.0, help="pan amplitude, degrees (default 40)")
+    g.add_argument("--tilt-amplitude", type=float, default=8.0, help="tilt amplitude, degrees (default 8)")
+    g.add_argument("--pan-cycles", type=float, default=1.0, help="pan periods over the sequence")
+    g.add_argument("--tilt-cycles", type=float, default=2.0, help="tilt periods over the sequence")
+    g.add_argument("--waveform", choices=("sine", "triangle"), default="sine", help="pan/tilt path shape")
+    g.add_argument(
+        "--pp-offset", type=float, nargs=2, default=(15.0, -10.0), metavar=("DX", "DY"),
+        help="principal point offset from the image centre, pixels (default 15 -10)",
+    )  # fmt: skip
+    g.add_argument(
+        "--pp-drift", type=float, nargs=2, default=(0.0, 0.0), metavar=("DX", "DY"),
+        help="principal point displacement at --zoom-max, linear in zoom (default 0 0)",
+    )  # fmt: skip
+    g.add_argument(
+        "--distortion", type=float, default=0.0, metavar="FRACTION",
+        help="division-model corner shift at the wide end as a fraction of the half-diagonal, "
+        "shrinking as 1/f (0.12 = 12%% barrel; default 0: none)",
+    )  # fmt: skip
+    g = parser.add_argument_group("encoders")
+    g.add_argument("--encoder-rate", type=float, default=15.0, help="JointState rate, Hz (default 15)")
+    g.add_argument(
+        "--encoder-lag", type=float, default=0.040,
+        help="seconds: a sample stamped t reports the head at t - lag (default 0.040)",
+    )  # fmt: skip
+    g.add_argument("--pan-tilt-noise", type=float, default=0.01, help="encoder noise sigma, degrees")
+    g.add_argument("--zoom-noise", type=float, default=2.0, help="zoom encoder noise sigma, counts")
+    g.add_argument(
+        "--lens-ratio", type=float, default=20.0,
+        help="zoom ratio of the lens over the full 0..16384 encoder range (default 20)",
+    )  # fmt: skip
+    g = parser.add_argument_group("images")
+    g.add_argument("--format", choices=FORMATS, default="jpeg", help="image encoding (default jpeg)")
+    g.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality 1..100 (default 90)")
+    g.add_argument("--image-noise", type=float, default=2.0, help="Gaussian noise sigma, grey levels")
+    g.add_argument("--brightness-drift", type=float, default=0.10, help="gain amplitude (0.10 = +-10%%)")
+    g.add_argument("--interpolation", choices=("linear", "cubic"), default="linear", help="panorama sampling")
+    g = parser.add_argument_group("output")
+    g.add_argument("--namespace", default="/ptz", help="topic prefix (default /ptz)")
+    g.add_argument("--frame-id", default="ptz_optical_frame", help="image header frame_id")
+    g.add_argument("--seed", type=int, default=0, help="random seed (same seed = same bytes)")
+    g.add_argument(
+        "--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (default mcap)"
+    )
+    g.add_argument("--jobs", type=int, default=2, help="rendering threads (default 2)")
+    g.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+# --------------------------------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------------------------------
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise CliError(message)
+
+
+def _finite(*values: float) -> bool:
+    return all(np.isfinite(v) for v in values)
+
+
+def validate(args: argparse.Namespace) -> None:
+    """One-line CliError for every absurd option (before any work is done)."""
+    _check(args.frames >= 2, f"--frames must be at least 2, got {args.frames}")
+    _check(args.frames <= 1_000_000, f"--frames must be at most 1000000, got {args.frames}")
+    _check(16 <= args.width <= 16384 and 16 <= args.height <= 16384, "--width/--height must be in 16..16384")
+    _check(_finite(args.fps) and 0.0 < args.fps <= 1000.0, f"--fps must be in (0, 1000], got {args.fps}")
+    _check(_finite(args.start_time) and 0.0 <= args.start_time < 4e9, "--start-time must be in [0, 4e9) s")
+    _check(_finite(args.hfov) and 1.0 <= args.hfov <= 170.0, f"--hfov must be in [1, 170], got {args.hfov}")
+    if args.f_wide is not None:
+        _check(_finite(args.f_wide) and args.f_wide > 1.0, f"--f-wide must be > 1 pixel, got {args.f_wide}")
+    _check(_finite(args.zoom_max) and args.zoom_max >= 1.0, f"--zoom-max must be >= 1, got {args.zoom_max}")
+    _check(
+        _finite(args.lens_ratio)
+        and args.lens_ratio >= max(args.zoom_max, 1.0 + 1e-6)
+        and args.lens_ratio > 1.0,
+        f"--lens-ratio must be > 1 and >= --zoom-max, got {args.lens_ratio}",
+    )
+    _check(
+        _finite(args.pan_amplitude) and 0.0 <= args.pan_amplitude <= 170.0,
+        f"--pan-amplitude must be in [0, 170] deg, got {args.pan_amplitude}",
+    )
+    _check(
+        _finite(args.tilt_amplitude) and 0.0 <= args.tilt_amplitude <= 60.0,
+        f"--tilt-amplitude must be in [0, 60] deg, got {args.tilt_amplitude}",
+    )
+    _check(_finite(args.pan_cycles, args.tilt_cycles), "--pan-cycles/--tilt-cycles must be finite")
+    _check(_finite(*args.pp_offset, *args.pp_drift), "--pp-offset/--pp-drift must be finite")
+    _check(
+        max(map(abs, (*args.pp_offset, *args.pp_drift))) <= 0.25 * min(args.width, args.height),
+        "--pp-offset/--pp-drift must stay within a quarter of the image size",
+    )
+    _check(
+        _finite(args.distortion) and -0.3 <= args.distortion <= 0.5,
+        f"--distortion must be in [-0.3, 0.5], got {args.distortion}",
+    )
+    _check(
+        _finite(args.encoder_rate) and 0.0 < args.encoder_rate <= 10000.0,
+        f"--encoder-rate must be in (0, 10000] Hz, got {args.encoder_rate}",
+    )
+    _check(_finite(args.encoder_lag) and abs(args.encoder_lag) <= 10.0, "--encoder-lag must be within +-10 s")
+    _check(_finite(args.pan_tilt_noise) and args.pan_tilt_noise >= 0.0, "--pan-tilt-noise must be >= 0")
+    _check(_finite(args.zoom_noise) and args.zoom_noise >= 0.0, "--zoom-noise must be >= 0")
+    _check(1 <= args.jpeg_quality <= 100, f"--jpeg-quality must be in 1..100, got {args.jpeg_quality}")
+    _check(
+        _finite(args.image_noise) and 0.0 <= args.image_noise <= 100.0, "--image-noise must be in [0, 100]"
+    )
+    _check(
+        _finite(args.brightness_drift) and 0.0 <= args.brightness_drift < 1.0,
+        "--brightness-drift must be in [0, 1)",
+    )
+    _check(args.namespace.startswith("/") and " " not in args.namespace, "--namespace must start with /")
+    _check(1 <= args.jobs <= 64, f"--jobs must be in 1..64, got {args.jobs}")
+
+
+def _out_path(path: str) -> Path:
+    out = Path(path)
+    _check(not out.exists() and not out.is_symlink(), f"{out}: already exists (refusing to overwrite)")
+    _check(out.parent.is_dir(), f"{out.parent}: no such directory")
+    _check(out.name not in ("", ".", ".."), f"{path}: not a valid bag path")
+    return out
+
+
+def load_panorama(path: str) -> np.ndarray:
+    p = Path(path)
+    _check(p.exists(), f"{p}: no such file")
+    _check(p.is_file(), f"{p}: not a file")
+    image = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    _check(image is not None and image.size > 0, f"{p}: cannot read the image (not an image file?)")
+    h, w = image.shape[:2]
+    _check(
+        is_equirectangular(w, h),
+        f"{p}: {w}x{h} is not an equirectangular panorama (width must be twice the height)",
+    )
+    return image
+
+
+# --------------------------------------------------------------------------------------------------
+# The scene
+# --------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Setup:
+    profile: CameraProfile
+    zoom: ZoomEncoder
+    encoders: EncoderModel
+    image_model: ImageModel
+    frame_times: np.ndarray  # seconds from the first frame
+    start_ns: int
+
+
+def make_setup(args: argparse.Namespace) -> Setup:
+    f_wide = float(args.f_wide if args.f_wide is not None else focal_from_hfov(args.width, args.hfov))
+    period = (args.frames - 1) / args.fps
+    profile = CameraProfile(
+        width=args.width,
+        height=args.height,
+        period=period,
+        f_wide=f_wide,
+        zoom_max=args.zoom_max,
+        pan_amplitude=float(np.radians(args.pan_amplitude)),
+        tilt_amplitude=float(np.radians(args.tilt_amplitude)),
+        pan_cycles=args.pan_cycles,
+        tilt_cycles=args.tilt_cycles,
+        waveform=args.waveform,
+        pp_offset=tuple(args.pp_offset),
+        pp_drift=tuple(args.pp_drift),
+        corner_shift=args.distortion,
+    )
+    return Setup(
+        profile=profile,
+        zoom=ZoomEncoder(f_wide, lens_ratio=args.lens_ratio),
+        encoders=EncoderModel(
+            args.encoder_rate, args.encoder_lag, float(np.radians(args.pan_tilt_noise)), args.zoom_noise
+        ),
+        image_model=ImageModel(args.image_noise, args.brightness_drift, period),
+        frame_times=np.arange(args.frames) / args.fps,
+        start_ns=round(args.start_time * 1e9),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Messages (rosbags dataclasses)
+# --------------------------------------------------------------------------------------------------
+def _header(types: Any, stamp_ns: int, frame_id: str) -> Any:
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id
+    )
+
+
+def camera_info_msg(types: Any, header: Any, state: CameraState, i: int, width: int, height: int) -> Any:
+    K = state.K(i)
+    lam = float(state.lam[i])
+    model, d = (DIVISION, [lam]) if lam != 0.0 else (PLUMB_BOB, [0.0] * 5)
+    P = np.hstack([K, np.zeros((3, 1))])
+    roi = types["sensor_msgs/msg/RegionOfInterest"](
+        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+    )
+    return types[INFO_TYPE](
+        header=header, height=height, width=width, distortion_model=model, d=np.array(d, dtype=np.float64),
+        k=K.ravel().astype(np.float64), r=np.eye(3).ravel(), p=P.ravel().astype(np.float64),
+        binning_x=0, binning_y=0, roi=roi,
+    )  # fmt: skip
+
+
+def joint_state_msg(types: Any, header: Any, values: tuple[float, float, float]) -> Any:
+    empty = np.zeros(0, dtype=np.float64)
+    return types[JOINT_TYPE](
+        header=header,
+        name=list(JOINTS),
+        position=np.array(values, dtype=np.float64),
+        velocity=empty,
+        effort=empty,
+    )
+
+
+def image_msg(types: Any, header: Any, fmt: str, payload: np.ndarray | bytes, size: tuple[int, int]) -> Any:
+    data = np.frombuffer(payload, dtype=np.uint8) if isinstance(payload, bytes) else payload.reshape(-1)
+    if fmt in ("jpeg", "png"):
+        return types[COMPRESSED_TYPE](header=header, format=fmt, data=data)
+    w, h = size
+    channels = 1 if fmt == "mono8" else 3
+    return types[IMAGE_TYPE](
+        header=header, height=h, width=w, encoding=fmt, is_bigendian=0, step=w * channels, data=data
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Rendering pipeline
+# --------------------------------------------------------------------------------------------------
+def frame_renderer(
+    args: argparse.Namespace, panorama: Panorama, setup: Setup, truth: CameraState
+) -> Callable[[int], np.ndarray | bytes]:
+    """frame index -> encoded image (bytes for jpeg/png, a uint8 array for raw formats)."""
+    interpolation = cv2.INTER_CUBIC if args.interpolation == "cubic" else cv2.INTER_LINEAR
+    size = (args.width, args.height)
+
+    def render(i: int) -> np.ndarray | bytes:
+        view = render_view(panorama, truth.K(i), truth.R(i), size, float(truth.lam[i]) or None, interpolation)
+        rng = np.random.default_rng([args.seed, 2, i])  # one stream per frame: order-independent
+        image = setup.image_model.apply(view, float(truth.t[i]), rng)
+        if args.format == "jpeg":
+            return _encode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, args.jpeg_quality])
+        if args.format == "png":
+            return _encode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        return image
+
+    return render
+
+
+def _encode(ext: str, image: np.ndarray, params: list[int]) -> bytes:
+    ok, buf = cv2.imencode(ext, image, params)
+    if not ok:
+        raise CliError(f"cannot encode a {ext} image")
+    return buf.tobytes()
+
+
+def ordered_map(fn: Callable[[int], Any], count: int, jobs: int, ahead: int = 4) -> Iterator[Any]:
+    """fn(0), fn(1), ... in order, computed by `jobs` threads at most `ahead` items ahead."""
+    if jobs <= 1:
+        yield from (fn(i) for i in range(count))
+        return
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        pending: deque[Future] = deque()
+        for i in range(count):
+            pending.append(pool.submit(fn, i))
+            if len(pending) >= ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+class Progress:
+    """A line on stderr every `every` seconds: frames done, frames/s, time left."""
+
+    def __init__(self, total: int, quiet: bool, every: float = 2.0) -> None:
+        self.total, self.quiet, self.every = total, quiet, every
+        self.start = self.last = time.monotonic()
+
+    def update(self, done: int) -> None:
+        now = time.monotonic()
+        if self.quiet or (now - self.last < self.every and done < self.total):
+            return
+        self.last = now
+        rate = done / max(now - self.start, 1e-9)
+        eta = (self.total - done) / max(rate, 1e-9)
+        print(f"synth: {done}/{self.total} frames, {rate:.1f} frames/s, {eta:.0f} s left", file=sys.stderr)
+
+
+def write_bag(args: argparse.Namespace, bag_path: Path, panorama: Panorama, setup: Setup) -> int:
+    """Render every frame and write all topics to a new bag at bag_path; returns the frame count."""
+    from ptz_selfcal.tools.bagio import BagWriter, typestore
+
+    types = typestore().types
+    ns = args.namespace.rstrip("/")
+    compressed = args.format in ("jpeg", "png")
+    image_topic = f"{ns}/image_raw/compressed" if compressed else f"{ns}/image_raw"
+    truth = setup.profile.state(setup.frame_times)
+    enc_times = setup.encoders.sample_times(float(setup.frame_times[0]), float(setup.frame_times[-1]))
+    enc = setup.encoders.readings(setup.profile, setup.zoom, enc_times, np.random.default_rng([args.seed, 1]))
+    true_counts = setup.zoom.counts(truth.f)
+    stamp = lambda t: setup.start_ns + round(float(t) * 1e9)  # noqa: E731
+    progress = Progress(args.frames, args.quiet)
+    next_enc = 0
+    with BagWriter(bag_path, storage=args.storage) as writer:
+        for topic, msgtype in (
+            (image_topic, COMPRESSED_TYPE if compressed else IMAGE_TYPE),
+            (f"{ns}/joint_states", JOINT_TYPE),
+            (f"{ns}/ground_truth/camera_info", INFO_TYPE),
+            (f"{ns}/ground_truth/joint_states", JOINT_TYPE),
+        ):
+            writer.add_topic(topic, msgtype)
+        renderer = frame_renderer(args, panorama, setup, truth)
+        for i, payload in enumerate(ordered_map(renderer, args.frames, args.jobs)):
+            t_ns = stamp(truth.t[i])
+            while next_enc < len(enc_times) and stamp(enc_times[next_enc]) <= t_ns:  # bag in time order
+                next_enc = _write_encoder(writer, types, ns, enc_times, enc, next_enc, stamp)
+            header = _header(types, t_ns, args.frame_id)
+            writer.write(
+                image_topic,
+                writer_type(compressed),
+                t_ns,
+                image_msg(types, header, args.format, payload, (args.width, args.height)),
+            )
+            writer.write(
+                f"{ns}/ground_truth/camera_info",
+                INFO_TYPE,
+                t_ns,
+                camera_info_msg(types, header, truth, i, args.width, args.height),
+            )
+            gt = (float(truth.pan[i]), float(truth.tilt[i]), float(true_counts[i]))
+            writer.write(
+                f"{ns}/ground_truth/joint_states", JOINT_TYPE, t_ns, joint_state_msg(types, header, gt)
+            )
+            progress.update(i + 1)
+        while next_enc < len(enc_times):
+            next_enc = _write_encoder(writer, types, ns, enc_times, enc, next_enc, stamp)
+    return args.frames
+
+
+def writer_type(compressed: bool) -> str:
+    return COMPRESSED_TYPE if compressed else IMAGE_TYPE
+
+
+def _write_encoder(
+    writer: Any, types: Any, ns: str, times: np.ndarray, enc: tuple, k: int, stamp: Callable
+) -> int:
+    t_ns = stamp(times[k])
+    header = _header(types, t_ns, "")
+    values = (float(enc[0][k]), float(enc[1][k]), float(enc[2][k]))
+    writer.write(f"{ns}/joint_states", JOINT_TYPE, t_ns, joint_state_msg(types, header, values))
+    return k + 1
+
+
+def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) -> str:
+    """Every parameter of the bag (deterministic text: no wall-clock time, no absolute paths)."""
+    import yaml
+
+    p, z, e, im = setup.profile, setup.zoom, setup.encoders, setup.image_model
+    doc = {
+        "generator": "ptz-selfcal synth",
+        "panorama": {"file": Path(args.panorama).name, "sha256": panorama_sha256},
+        "frames": args.frames, "fps": args.fps, "width": args.width, "height": args.height,
+        "start_time_ns": setup.start_ns, "seed": args.seed, "format": args.format,
+        "jpeg_quality": args.jpeg_quality, "interpolation": args.interpolation,
+        "profile": {
+            "period_s": p.period, "f_wide_px": p.f_wide, "zoom_max": p.zoom_max,
+            "zoom_law": "z(t) = zoom_max ** ((1 - cos(2 pi t / period)) / 2), f = f_wide z",
+            "pan_amplitude_deg": args.pan_amplitude, "tilt_amplitude_deg": args.tilt_amplitude,
+            "pan_cycles": p.pan_cycles, "tilt_cycles": p.tilt_cycles, "waveform": p.waveform,
+            "pp_offset_px": list(p.pp_offset), "pp_drift_px": list(p.pp_drift),
+            "distortion_corner_shift_at_wide": p.corner_shift,
+            "distortion_model": "division, lam on radius / fx about the principal point (core/distortion.py)",
+        },
+        "zoom_encoder": {
+            "law": "counts = 16384 * (ln(f / f_wide) / ln(lens_ratio)) ** exponent",
+            "lens_ratio": z.lens_ratio, "exponent": z.exponent, "counts_max": z.counts_max,
+        },
+        "encoders": {
+            "rate_hz": e.rate, "lag_s": e.lag,
+            "lag_meaning": "a sample stamped t reports the head at t - lag (ingest time_offset = -lag)",
+            "pan_tilt_sigma_deg": float(np.degrees(e.pan_tilt_sigma)), "zoom_sigma_counts": e.zoom_sigma,
+        },
+        "image_model": {"noise_sigma": im.noise_sigma, "brightness_drift": im.brightness_drift},
+    }  # fmt: skip
+    return yaml.safe_dump(_plain(doc), sort_keys=False)
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and tuples to plain Python (safe_dump's types)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _sha256(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def run(args: argparse.Namespace) -> int:
+    validate(args)
+    out = _out_path(args.out_bag)
+    image = load_panorama(args.panorama)
+    if args.format == "mono8":
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    panorama = build_panorama(image)
+    setup = make_setup(args)
+    start = time.monotonic()
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        bag = staging / out.name
+        write_bag(args, bag, panorama, setup)
+        (bag / "synth_params.yaml").write_text(params_yaml(args, setup, _sha256(args.panorama)))
+        _check(not out.exists(), f"{out}: appeared while rendering (refusing to overwrite)")
+        os.rename(bag, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    if not args.quiet:
+        seconds = time.monotonic() - start
+        size = sum(f.stat().st_size for f in out.iterdir()) / 1e6
+        print(
+            f"synth: wrote {out} ({args.frames} frames in {seconds:.1f} s, "
+            f"{args.frames / seconds:.1f} frames/s, {size:.1f} MB)",
+            file=sys.stderr,
+        )
+    return 0
