@@ -1,0 +1,346 @@
+"""Message <-> numpy conversions (cv_bridge does not exist here): images in, mono8 at working size out.
+
+Works on any object with the fields of sensor_msgs/Image (height, width, encoding, is_bigendian, step,
+data) or sensor_msgs/CompressedImage (format, data): rclpy messages and rosbags messages alike.
+Every way an input can be unusable raises FrameError with a short `kind` (the diagnostics counter name)
+and a one-line explanation; nothing here logs or crashes.
+
+Working resolution: an integer downscale factor k, scale s = 1/k, so that both axes scale exactly and the
+pixel-centre convention x_work = (x_full + 0.5) * s - 0.5 of core/geometry.py holds (INTER_AREA averaging
+of k x k blocks; a full image whose size is not a multiple of k loses its last < k columns/rows, which
+does not move any coordinate). JPEG is decoded directly at 1/2, 1/4 or 1/8 size where possible (libjpeg
+DCT scaling averages the same blocks).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+Mono8 = NDArray[np.uint8]
+
+# encoding -> (channels, bytes per channel, colour order or None)
+RAW_ENCODINGS: dict[str, tuple[int, int, str | None]] = {
+    "mono8": (1, 1, None),
+    "8UC1": (1, 1, None),
+    "mono16": (1, 2, None),
+    "16UC1": (1, 2, None),
+    "bgr8": (3, 1, "bgr"),
+    "rgb8": (3, 1, "rgb"),
+    "8UC3": (3, 1, "bgr"),
+    "bgra8": (4, 1, "bgra"),
+    "rgba8": (4, 1, "rgba"),
+}
+
+_JPEG_REDUCED = {
+    2: cv2.IMREAD_REDUCED_GRAYSCALE_2,
+    4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+    8: cv2.IMREAD_REDUCED_GRAYSCALE_8,
+}
+
+
+class FrameError(ValueError):
+    """An input frame that cannot be used; `kind` names its diagnostics counter."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class WorkingImage:
+    image: Mono8  # mono8, working resolution, C-contiguous
+    full_width: int
+    full_height: int
+    factor: int  # integer downscale factor k; scale = 1 / k
+
+    @property
+    def scale(self) -> float:
+        return 1.0 / self.factor
+
+
+@dataclass(frozen=True)
+class ImageLimits:
+    max_pixels: int = 50_000_000  # larger images are refused before any decoding
+    max_bytes: int = 200_000_000  # larger payloads are refused
+    mono16_max: int = 65535  # mono16 value mapped to 255 (e.g. 4095 for a 12-bit sensor)
+
+
+def downscale_factor(full_width: int, working_width: int) -> int:
+    """Integer factor k >= 1 whose working width full_width / k is nearest to working_width."""
+    if working_width <= 0 or full_width <= working_width:
+        return 1
+    return max(1, round(full_width / working_width))
+
+
+def _check_size(width: int, height: int, limits: ImageLimits) -> None:
+    if width <= 0 or height <= 0:
+        raise FrameError("zero_size", f"image of size {width}x{height}")
+    if width * height > limits.max_pixels:
+        raise FrameError(
+            "too_large", f"image of {width}x{height} exceeds max_image_pixels={limits.max_pixels}"
+        )
+
+
+def _reduce(gray: Mono8, factor: int) -> Mono8:
+    if factor == 1:
+        return np.ascontiguousarray(gray)
+    h, w = gray.shape
+    wk, hk = w // factor, h // factor
+    if wk == 0 or hk == 0:
+        raise FrameError("zero_size", f"image of {w}x{h} is smaller than the downscale factor {factor}")
+    cropped = gray[: hk * factor, : wk * factor]
+    return cv2.resize(cropped, (wk, hk), interpolation=cv2.INTER_AREA)
+
+
+def _to_gray8(pixels: np.ndarray, channels: int, order: str | None, limits: ImageLimits) -> Mono8:
+    if pixels.dtype == np.uint16:
+        if channels != 1:
+            raise FrameError("unsupported_encoding", "16-bit colour images are not supported")
+        top = max(1, int(limits.mono16_max))
+        return cv2.convertScaleAbs(np.minimum(pixels, top), alpha=255.0 / top)
+    if channels == 1:
+        return pixels
+    code = {
+        "bgr": cv2.COLOR_BGR2GRAY,
+        "rgb": cv2.COLOR_RGB2GRAY,
+        "bgra": cv2.COLOR_BGRA2GRAY,
+        "rgba": cv2.COLOR_RGBA2GRAY,
+    }[order or "bgr"]
+    return cv2.cvtColor(pixels, code)
+
+
+def image_to_working(msg: Any, working_width: int, limits: ImageLimits | None = None) -> WorkingImage:
+    """sensor_msgs/Image -> mono8 at the working resolution; FrameError when unusable."""
+    limits = limits or ImageLimits()
+    width, height, step = int(msg.width), int(msg.height), int(msg.step)
+    encoding = str(msg.encoding)
+    _check_size(width, height, limits)
+    if encoding not in RAW_ENCODINGS:
+        raise FrameError("unsupported_encoding", f"unsupported encoding {encoding!r}")
+    channels, depth, order = RAW_ENCODINGS[encoding]
+    row_bytes = width * channels * depth
+    if step < row_bytes:
+        raise FrameError(
+            "bad_step", f"step {step} < width*bytes per pixel = {row_bytes} ({width}x{height} {encoding})"
+        )
+    data = msg.data
+    size = len(data)
+    if size > limits.max_bytes:
+        raise FrameError("too_large", f"image payload of {size} bytes exceeds {limits.max_bytes}")
+    if size != step * height:
+        raise FrameError(
+            "size_mismatch", f"data has {size} bytes, step*height = {step * height} ({encoding})"
+        )
+    buf = np.frombuffer(data, np.uint8).reshape(height, step)[:, :row_bytes]
+    if depth == 2:
+        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
+        pixels = np.ascontiguousarray(buf).view(dtype).astype(np.uint16, copy=False)
+        pixels = pixels.reshape(height, width)
+    else:
+        pixels = buf.reshape(height, width, channels) if channels > 1 else buf
+    factor = downscale_factor(width, working_width)
+    gray = _to_gray8(pixels, channels, order, limits)
+    return WorkingImage(_reduce(gray, factor), width, height, factor)
+
+
+def compressed_size(data: bytes | memoryview | np.ndarray) -> tuple[str, int, int] | None:
+    """(kind, width, height) read from a PNG or JPEG header without decoding; None if not recognised.
+    (0, 0) as the size when the header cannot be parsed."""
+    view = memoryview(np.ascontiguousarray(np.frombuffer(data, np.uint8)))
+    b = bytes(view[:24])
+    if b.startswith(b"\x89PNG\r\n\x1a\n"):
+        if len(b) >= 24 and b[12:16] == b"IHDR":
+            w, h = struct.unpack(">II", b[16:24])
+            return "png", int(w), int(h)
+        return "png", 0, 0
+    if not b.startswith(b"\xff\xd8"):
+        return None
+    i, n = 2, len(view)
+    while i + 9 < n:
+        if view[i] != 0xFF:
+            break
+        marker = view[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            i += 2
+            continue
+        length = (view[i + 2] << 8) | view[i + 3]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+            h = (view[i + 5] << 8) | view[i + 6]
+            w = (view[i + 7] << 8) | view[i + 8]
+            return "jpeg", int(w), int(h)
+        if length < 2:
+            break
+        i += 2 + length
+    return "jpeg", 0, 0
+
+
+def compressed_to_working(msg: Any, working_width: int, limits: ImageLimits | None = None) -> WorkingImage:
+    """sensor_msgs/CompressedImage (jpeg, png, "bgr8; jpeg compressed bgr8", 16-bit png) -> mono8."""
+    limits = limits or ImageLimits()
+    fmt = str(msg.format).lower()
+    if "compresseddepth" in fmt:
+        raise FrameError("unsupported_format", f"unsupported compressed format {msg.format!r}")
+    data = np.frombuffer(msg.data, np.uint8)
+    if data.size == 0:
+        raise FrameError("zero_size", "empty compressed image")
+    if data.size > limits.max_bytes:
+        raise FrameError("too_large", f"compressed payload of {data.size} bytes exceeds {limits.max_bytes}")
+    header = compressed_size(data)
+    if header is None:
+        raise FrameError("undecodable", f"compressed data ({msg.format!r}) is neither JPEG nor PNG")
+    kind, w, h = header
+    if w == 0 or h == 0:
+        raise FrameError("undecodable", f"{kind} data without a readable size header")
+    _check_size(w, h, limits)
+    factor = downscale_factor(w, working_width)
+    if kind == "jpeg" and factor in _JPEG_REDUCED:
+        decoded = cv2.imdecode(data, _JPEG_REDUCED[factor])
+        if decoded is not None:
+            # libjpeg rounds reduced sizes up; keep whole k x k blocks only (as _reduce does).
+            hk, wk = h // factor, w // factor
+            if hk == 0 or wk == 0:
+                raise FrameError("zero_size", f"image of {w}x{h} is smaller than the factor {factor}")
+            return WorkingImage(np.ascontiguousarray(decoded[:hk, :wk]), w, h, factor)
+        raise FrameError("undecodable", f"corrupt {kind} data ({data.size} bytes)")
+    decoded = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise FrameError("undecodable", f"corrupt {kind} data ({data.size} bytes)")
+    if decoded.shape[0] != h or decoded.shape[1] != w:
+        raise FrameError(
+            "undecodable", f"{kind} decoded to {decoded.shape[1]}x{decoded.shape[0]}, header {w}x{h}"
+        )
+    channels = 1 if decoded.ndim == 2 else decoded.shape[2]
+    order = {1: None, 3: "bgr", 4: "bgra"}.get(channels)
+    if channels not in (1, 3, 4):
+        raise FrameError("unsupported_format", f"{kind} with {channels} channels")
+    gray = _to_gray8(decoded, channels, order, limits)
+    return WorkingImage(_reduce(gray, factor), w, h, factor)
+
+
+def fill_mono8(msg: Any, image: Mono8) -> None:
+    """Fill a sensor_msgs/Image (rclpy) with a mono8 numpy image (fast path for array.array data)."""
+    import array
+
+    image = np.ascontiguousarray(image, np.uint8)
+    msg.height, msg.width = int(image.shape[0]), int(image.shape[1])
+    msg.encoding = "mono8"
+    msg.is_bigendian = 0
+    msg.step = int(image.shape[1])
+    data = array.array("B")
+    data.frombytes(image.tobytes())
+    msg.data = data
+
+
+def mono8_from_msg(msg: Any) -> Mono8:
+    """A mono8 sensor_msgs/Image as a (read-only view) numpy array; FrameError when inconsistent."""
+    if msg.encoding not in ("mono8", "8UC1"):
+        raise FrameError("unsupported_encoding", f"expected mono8, got {msg.encoding!r}")
+    w, h, step = int(msg.width), int(msg.height), int(msg.step)
+    if w <= 0 or h <= 0:
+        raise FrameError("zero_size", f"image of size {w}x{h}")
+    if step < w or len(msg.data) != step * h:
+        raise FrameError("size_mismatch", f"step {step}, {len(msg.data)} bytes for {w}x{h} mono8")
+    return np.frombuffer(msg.data, np.uint8).reshape(h, step)[:, :w]
+
+
+def camera_info_fields(
+    K: NDArray[np.float64], width: int, height: int, k1: float = 0.0, k2: float = 0.0
+) -> dict:
+    """The CameraInfo fields of DESIGN.md section 3 for a full-resolution K: K, P = [K|0], R = I,
+    plumb_bob D = [k1, k2, 0, 0, 0]. Assign them with `for k, v in fields.items(): setattr(msg, k, v)`."""
+    K = np.asarray(K, dtype=float).reshape(3, 3)
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    return {
+        "width": int(width),
+        "height": int(height),
+        "distortion_model": "plumb_bob",
+        "d": [float(k1), float(k2), 0.0, 0.0, 0.0],
+        "k": [float(v) for v in K.ravel()],
+        "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        "p": [float(v) for v in P.ravel()],
+    }
+
+
+def stamp_to_sec(stamp: Any) -> float:
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Parameter helpers shared by the nodes of this package: declared with descriptions, validated at start-up.
+
+
+class ConfigError(ValueError):
+    """A parameter with a wrong type or an absurd value: the node exits with status 2 and this message."""
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: Any
+    description: str
+    check: Any = None  # callable(value) -> error text or None
+    read_only: bool = True
+
+
+def in_range(lo: float, hi: float) -> Any:
+    def check(value: Any) -> str | None:
+        if not (lo <= value <= hi):  # also rejects NaN
+            return f"must be in [{lo}, {hi}], got {value}"
+        return None
+
+    return check
+
+
+def one_of(*choices: str) -> Any:
+    def check(value: Any) -> str | None:
+        return None if value in choices else f"must be one of {', '.join(choices)}, got {value!r}"
+
+    return check
+
+
+def declare_params(node: Any, specs: list[Param]) -> dict[str, Any]:
+    """Declare every parameter with its description, check types and ranges; ConfigError otherwise."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    values: dict[str, Any] = {}
+    for spec in specs:
+        descriptor = ParameterDescriptor(description=spec.description, read_only=spec.read_only)
+        try:
+            value = node.declare_parameter(spec.name, spec.default, descriptor).value
+        except Exception as exc:  # rclpy raises several exception types for wrongly typed overrides
+            raise ConfigError(f"parameter {spec.name}: {_first_line(exc)}") from exc
+        if isinstance(spec.default, float) and isinstance(value, int):
+            value = float(value)
+        if spec.default is not None and not isinstance(value, type(spec.default)):
+            raise ConfigError(f"parameter {spec.name}: expected {type(spec.default).__name__}, got {value!r}")
+        if spec.check is not None:
+            error = spec.check(value)
+            if error:
+                raise ConfigError(f"parameter {spec.name} {error}")
+        values[spec.name] = value
+    return values
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
+
+def diagnostic_values(counters: dict[str, Any]) -> list:
+    from diagnostic_msgs.msg import KeyValue
+
+    return [KeyValue(key=str(k), value=str(v)) for k, v in counters.items()]

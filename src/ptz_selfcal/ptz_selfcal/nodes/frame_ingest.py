@@ -1,0 +1,355 @@
+"""frame_ingest node: camera images + PTZ encoders in, IngestedFrame (mono8, working size) out.
+
+Subscribes topics.IMAGE_RAW and/or topics.IMAGE_COMPRESSED (parameter `input`) and topics.JOINT_STATES;
+publishes one IngestedFrame per usable image on topics.FRAME_IN with the encoders interpolated to the
+image stamp (core/encoders.py), the full-resolution size and the working scale; DiagnosticArray on
+topics.DIAGNOSTICS. Unusable images (unsupported or lying encoding, step/size mismatch, zero or huge
+size, undecodable compressed data, duplicate stamps) are counted per kind, logged once per kind and
+skipped; black or flat frames pass (the tracker decides). Run:
+    python -m ptz_selfcal.nodes.frame_ingest --ros-args -p working_width:=640
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CompressedImage, Image, JointState
+
+from ptz_selfcal import topics
+from ptz_selfcal.core.encoders import EncoderConfig, EncoderInterpolator, QueryStatus
+from ptz_selfcal.nodes.conversions import (
+    ConfigError,
+    FrameError,
+    ImageLimits,
+    Param,
+    WorkingImage,
+    compressed_to_working,
+    declare_params,
+    diagnostic_values,
+    fill_mono8,
+    image_to_working,
+    in_range,
+    one_of,
+    stamp_to_ns,
+    stamp_to_sec,
+)
+from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal_msgs.msg import IngestedFrame
+
+PARAMS = [
+    Param(
+        "input",
+        "both",
+        "which image topics to subscribe: raw, compressed or both",
+        one_of("raw", "compressed", "both"),
+    ),
+    Param(
+        "sensor_reliability",
+        "best_effort",
+        "image/encoder subscriptions: best_effort (accepts best-effort and reliable publishers) or reliable",
+        one_of("best_effort", "reliable"),
+    ),
+    Param(
+        "queue_policy",
+        "lossless",
+        "lossless: queue every frame (KEEP_ALL); latest: keep only the newest queue_depth frames so a slow "
+        "stage sheds frames (counted downstream from gaps in seq)",
+        one_of("lossless", "latest"),
+    ),
+    Param("queue_depth", 2, "KEEP_LAST depth of image queues with queue_policy latest", in_range(1, 100)),
+    Param(
+        "working_width",
+        640,
+        "target width of the working image; the node downscales by the nearest integer factor (0: full size)",
+        in_range(0, 100_000),
+    ),
+    Param("joint_names", ["pan", "tilt", "zoom"], "JointState names of the pan, tilt and zoom joints", None),
+    Param(
+        "encoder_time_offset",
+        0.0,
+        "seconds added to encoder stamps to put them on the image clock (encoder lag: positive when the "
+        "head reports a position later than the image stamps it)",
+        in_range(-60.0, 60.0),
+        read_only=False,
+    ),
+    Param(
+        "encoder_max_gap",
+        0.5,
+        "seconds: encoder samples further apart do not bracket a stamp",
+        in_range(1e-3, 60.0),
+    ),
+    Param(
+        "encoder_max_hold",
+        0.05,
+        "seconds: a single encoder sample this close to a stamp is used",
+        in_range(0.0, 10.0),
+    ),
+    Param(
+        "encoder_max_future",
+        10.0,
+        "seconds: encoder stamps further ahead of the newest image are rejected",
+        in_range(1e-3, 1e6),
+    ),
+    Param(
+        "encoder_buffer_size", 2000, "encoder samples kept per joint (bounded memory)", in_range(2, 1_000_000)
+    ),
+    Param(
+        "encoder_wait",
+        0.2,
+        "seconds (wall time) a frame may wait for an encoder sample newer than its stamp (0: never wait)",
+        in_range(0.0, 10.0),
+    ),
+    Param("max_pending_frames", 30, "frames that may wait for encoders at once", in_range(1, 1000)),
+    Param("max_image_pixels", 50_000_000, "larger images are refused before decoding", in_range(1, 1 << 40)),
+    Param("max_image_bytes", 200_000_000, "larger image payloads are refused", in_range(1, 1 << 40)),
+    Param("mono16_max", 65535, "mono16 value shown as white (4095 for a 12-bit sensor)", in_range(1, 65535)),
+    Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
+]
+
+
+@dataclass
+class _Pending:
+    frame: WorkingImage
+    header: Any
+    arrived: float  # monotonic
+
+
+class FrameIngest(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("frame_ingest", **kwargs)
+        p = declare_params(self, PARAMS)
+        names = list(p["joint_names"])
+        if len(names) != 3 or len(set(names)) != 3 or not all(isinstance(n, str) and n for n in names):
+            raise ConfigError(f"parameter joint_names must be three distinct names, got {names}")
+        self._p = p
+        self._encoder_config = EncoderConfig(
+            joints=(names[0], names[1], names[2]),
+            time_offset=p["encoder_time_offset"],
+            max_gap=p["encoder_max_gap"],
+            max_hold=p["encoder_max_hold"],
+            max_future=p["encoder_max_future"],
+            max_samples=p["encoder_buffer_size"],
+        )
+        try:
+            self._encoders = EncoderInterpolator(self._encoder_config)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
+        self._limits = ImageLimits(p["max_image_pixels"], p["max_image_bytes"], p["mono16_max"])
+        self._working_width = p["working_width"]
+        self._wait = p["encoder_wait"]
+
+        self._counts: Counter[str] = Counter()  # frames_in, frames_out, skipped_<kind>, ...
+        self._warned: set[str] = set()
+        self._seq = 0
+        self._recent_stamps: deque[int] = deque(maxlen=8)
+        self._newest_image_time: float | None = None
+        self._pending: deque[_Pending] = deque()
+        self._last_skipped_total = 0
+
+        sensor = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL if p["queue_policy"] == "lossless" else HistoryPolicy.KEEP_LAST,
+            depth=p["queue_depth"] if p["queue_policy"] == "latest" else 0,
+            reliability=ReliabilityPolicy.BEST_EFFORT
+            if p["sensor_reliability"] == "best_effort"
+            else ReliabilityPolicy.RELIABLE,
+        )
+        encoder_qos = QoSProfile(depth=100, reliability=sensor.reliability)
+        self._pub = self.create_publisher(IngestedFrame, topics.FRAME_IN, reliable_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        if p["input"] in ("raw", "both"):
+            self.create_subscription(Image, topics.IMAGE_RAW, self._on_raw, sensor)
+        if p["input"] in ("compressed", "both"):
+            self.create_subscription(CompressedImage, topics.IMAGE_COMPRESSED, self._on_compressed, sensor)
+        self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints, encoder_qos)
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        if self._wait > 0:
+            self.create_timer(min(0.02, self._wait / 2), self._flush_pending)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        cv2.utils.logging.setLogLevel(
+            cv2.utils.logging.LOG_LEVEL_ERROR
+        )  # OpenCV's own warnings about corrupt data: we count and log them ourselves
+        self.get_logger().info(
+            f"input={p['input']} ({p['sensor_reliability']}, {p['queue_policy']}), "
+            f"working_width={self._working_width}, joints={names}, encoder offset "
+            f"{p['encoder_time_offset']:+.3f} s -> {self._pub.topic_name}"
+        )
+
+    # ------------------------------------------------------------------ parameters
+    def _on_set_parameters(self, params: list) -> Any:
+        from rcl_interfaces.msg import SetParametersResult
+
+        for param in params:
+            if param.name == "encoder_time_offset":
+                value = param.value
+                if not isinstance(value, float | int) or not -60.0 <= value <= 60.0:
+                    return SetParametersResult(
+                        successful=False, reason="encoder_time_offset must be in [-60, 60] s"
+                    )
+                self._encoder_config = replace(self._encoder_config, time_offset=float(value))
+                self._encoders = EncoderInterpolator(self._encoder_config)  # stamps shift: start afresh
+                self.get_logger().info(f"encoder_time_offset set to {value:+.3f} s (encoder buffer cleared)")
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ input
+    def _skip(self, kind: str, message: str) -> None:
+        self._counts[f"skipped_{kind}"] += 1
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self.get_logger().warning(
+                f"frame skipped ({kind}): {message} (further ones counted in diagnostics)"
+            )
+
+    def _note(self, kind: str, message: str) -> None:
+        """A counted anomaly that does not stop the frame (logged once per kind)."""
+        self._counts[kind] += 1
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self.get_logger().warning(f"{kind}: {message} (further ones counted in diagnostics)")
+
+    def _on_raw(self, msg: Image) -> None:
+        self._counts["frames_in_raw"] += 1
+        self._ingest(msg.header, lambda: image_to_working(msg, self._working_width, self._limits))
+
+    def _on_compressed(self, msg: CompressedImage) -> None:
+        self._counts["frames_in_compressed"] += 1
+        self._ingest(msg.header, lambda: compressed_to_working(msg, self._working_width, self._limits))
+
+    def _ingest(self, header: Any, convert: Any) -> None:
+        self._counts["frames_in"] += 1
+        stamp_ns = stamp_to_ns(header.stamp)
+        if stamp_ns in self._recent_stamps:
+            self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} was already ingested")
+            return
+        try:
+            frame = convert()
+        except FrameError as exc:
+            self._skip(exc.kind, str(exc))
+            return
+        except Exception as exc:  # never let one frame take the node down
+            self._skip("internal_error", f"{type(exc).__name__}: {exc}")
+            return
+        self._recent_stamps.append(stamp_ns)
+        t = stamp_to_sec(header.stamp)
+        if self._newest_image_time is not None and t < self._newest_image_time:
+            self._note(
+                "image_stamp_out_of_order", f"image stamp {t:.6f} older than {self._newest_image_time:.6f}"
+            )
+        self._newest_image_time = t if self._newest_image_time is None else max(t, self._newest_image_time)
+        self._pending.append(_Pending(frame, header, time.monotonic()))
+        self._flush_pending()
+
+    def _on_joints(self, msg: JointState) -> None:
+        self._counts["encoder_messages"] += 1
+        names = list(msg.name)
+        positions = list(msg.position)
+        if len(positions) != len(names):
+            self._note(
+                "encoder_bad_message", f"JointState with {len(names)} names and {len(positions)} positions"
+            )
+            return
+        missing = [j for j in self._encoder_config.joints if j not in names]
+        if len(missing) == 3:
+            self._note(
+                "encoder_no_known_joint", f"JointState without any of {list(self._encoder_config.joints)}"
+            )
+            return
+        if missing:
+            self._note("encoder_missing_joints", f"JointState without {missing} (the others are used)")
+        rejected = self._encoders.add_arrays(
+            stamp_to_sec(msg.header.stamp), names, positions, self._newest_image_time
+        )
+        for joint, reason in rejected:
+            self._note(f"encoder_rejected_{reason.value}", f"{joint} sample rejected ({reason.value})")
+        self._flush_pending()
+
+    # ------------------------------------------------------------------ output
+    def _flush_pending(self) -> None:
+        now = time.monotonic()
+        while self._pending:
+            item = self._pending[0]
+            query = self._encoders.query(stamp_to_sec(item.header.stamp))
+            waiting = (
+                query.status is QueryStatus.NOT_YET
+                and self._wait > 0
+                and now - item.arrived < self._wait
+                and len(self._pending) <= self._p["max_pending_frames"]
+            )
+            if waiting:
+                return
+            self._pending.popleft()
+            if query.status is QueryStatus.NOT_YET and self._wait > 0:
+                self._counts["encoder_wait_expired"] += 1
+            self._publish(item, query)
+
+    def _publish(self, item: _Pending, query: Any) -> None:
+        frame = item.frame
+        msg = IngestedFrame()
+        msg.header = item.header
+        msg.image.header = item.header
+        fill_mono8(msg.image, frame.image)
+        msg.full_width = frame.full_width
+        msg.full_height = frame.full_height
+        msg.scale = frame.scale
+        msg.encoders.pan = query.pan
+        msg.encoders.tilt = query.tilt
+        msg.encoders.zoom = query.zoom
+        msg.encoders.valid = query.valid
+        if not query.valid:
+            self._counts[f"encoders_invalid_{query.status.value.lower()}"] += 1
+        msg.seq = self._seq
+        self._seq += 1
+        self._pub.publish(msg)
+        self._counts["frames_out"] += 1
+
+    def _publish_diagnostics(self) -> None:
+        counters: dict[str, Any] = {"frames_in": 0, "frames_out": 0}
+        counters.update(sorted(self._counts.items()))
+        counters["encoder_samples_accepted"] = self._encoders.samples_accepted
+        counters["encoder_samples_rejected"] = sum(self._encoders.rejections.values())
+        counters["pending_frames"] = len(self._pending)
+        skipped = sum(v for k, v in self._counts.items() if k.startswith("skipped_"))
+        counters["skipped_total"] = skipped
+        status = DiagnosticStatus()
+        status.name = self.get_fully_qualified_name()
+        status.hardware_id = topics.CAMERA_FRAME_ID
+        if skipped > self._last_skipped_total:
+            status.level = DiagnosticStatus.WARN
+            status.message = f"{skipped - self._last_skipped_total} frames skipped since the last report"
+        else:
+            status.level = DiagnosticStatus.OK
+            status.message = f"{counters['frames_out']} frames ingested"
+        self._last_skipped_total = skipped
+        status.values = diagnostic_values(counters)
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self._diag_pub.publish(array)
+
+    def close(self) -> None:
+        """Publish what is still waiting for encoders (called by run_node before shutdown)."""
+        while self._pending:
+            item = self._pending.popleft()
+            try:
+                self._publish(item, self._encoders.query(stamp_to_sec(item.header.stamp)))
+            except Exception:  # the context may already be shut down (SIGINT): nothing left to do
+                self._pending.clear()
+
+
+def main(args: list[str] | None = None) -> int:
+    try:
+        return run_node(FrameIngest, args)
+    except ConfigError as exc:
+        print(f"frame_ingest: configuration error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,301 @@
+"""homography_tracker node: IngestedFrame in, HomographyStamped (one per frame) and KeyframeMatches out.
+
+A thin wrapper of core/tracker.HomographyTracker. Every IngestedFrame gives exactly one HomographyStamped
+on topics.HOMOGRAPHY (header, full-resolution size and encoders passed through, `seq` copied), also when
+tracking is lost or the frame is unusable: then the state is TRACKING_LOST or TEXTURELESS, h is the
+identity and inlier_count 0. New keyframes (and relocalisations) publish their keyframe links as
+KeyframeMatches on topics.KEYFRAMES. reference_frame_id/reference_stamp name the reference keyframe's
+image (the map's origin: it changes when the tracker starts a new map). Tracker settings are the
+parameters `tracker.<field>` of core/tracker.TrackerConfig. Run:
+    python -m ptz_selfcal.nodes.homography_tracker --ros-args -p tracker.max_features:=300
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+import re
+import sys
+import time
+import traceback
+from collections import Counter, deque
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.node import Node
+
+from ptz_selfcal import topics
+from ptz_selfcal.core.tracker import HomographyTracker, TrackerConfig, TrackingState, TrackResult
+from ptz_selfcal.nodes.conversions import (
+    ConfigError,
+    FrameError,
+    Param,
+    declare_params,
+    diagnostic_values,
+    in_range,
+    mono8_from_msg,
+    one_of,
+    stamp_to_sec,
+)
+from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
+
+PARAMS = [
+    Param(
+        "queue_policy",
+        "lossless",
+        "lossless: process every frame (KEEP_ALL); latest: keep only the newest queue_depth frames, shedding "
+        "the others (counted as frames_dropped from gaps in seq)",
+        one_of("lossless", "latest"),
+    ),
+    Param("queue_depth", 2, "KEEP_LAST depth of the input queue with queue_policy latest", in_range(1, 100)),
+    Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
+]
+
+_STATE = {
+    TrackingState.TRACKING: HomographyStamped.TRACKING,
+    TrackingState.NEW_KEYFRAME: HomographyStamped.NEW_KEYFRAME,
+    TrackingState.RELOCALISED: HomographyStamped.RELOCALISED,
+    TrackingState.TRACKING_LOST: HomographyStamped.TRACKING_LOST,
+    TrackingState.TEXTURELESS: HomographyStamped.TEXTURELESS,
+}
+_IDENTITY = np.eye(3).ravel()
+# TrackerConfig fields the node does not expose (frame_ingest chooses the working scale).
+_NOT_PARAMETERS = {"working_scale"}
+_FRACTIONS = {"ratio", "fraction", "overlap", "level", "confidence"}  # name words of (0, 1] values
+
+
+def _field_comments() -> dict[str, str]:
+    """The inline comments of TrackerConfig's fields, as parameter descriptions."""
+    try:
+        source = inspect.getsource(TrackerConfig)
+    except (OSError, TypeError):
+        return {}
+    found = {}
+    for line in source.splitlines():
+        m = re.match(r"\s+(\w+):[^#]*#\s*(.+)$", line)
+        if m:
+            found[m.group(1)] = m.group(2).strip()
+    return found
+
+
+def tracker_params() -> list[Param]:
+    """One parameter `tracker.<field>` per TrackerConfig field, default from the dataclass."""
+    comments = _field_comments()
+    defaults = TrackerConfig()
+    params = []
+    for f in dataclasses.fields(TrackerConfig):
+        if f.name in _NOT_PARAMETERS:
+            continue
+        default = getattr(defaults, f.name)
+        if isinstance(default, tuple):
+            default = list(default)
+        description = comments.get(f.name, f"TrackerConfig.{f.name} (core/tracker.py)")
+        params.append(Param(f"tracker.{f.name}", default, description, _tracker_check(f.name, default)))
+    return params
+
+
+def _tracker_check(name: str, default: Any) -> Any:
+    def check(value: Any) -> str | None:
+        if isinstance(default, bool | str):
+            return None
+        values = value if isinstance(value, list | tuple) else [value]
+        for v in values:
+            if not math.isfinite(v) or v < 0:
+                return f"must be finite and >= 0, got {value}"
+            if _FRACTIONS & set(name.split("_")) and not 0.0 < v <= 1.0:
+                return f"must be in (0, 1], got {value}"
+        if isinstance(default, list) and len(values) != len(default):
+            return f"must have {len(default)} values, got {value}"
+        return None
+
+    return check
+
+
+class HomographyTrackerNode(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("homography_tracker", **kwargs)
+        p = declare_params(self, PARAMS)
+        tracker_values = declare_params(self, tracker_params())
+        config_kwargs = {}
+        for name, value in tracker_values.items():
+            field = name.removeprefix("tracker.")
+            config_kwargs[field] = tuple(int(v) for v in value) if isinstance(value, list) else value
+        try:
+            self._config = TrackerConfig(**config_kwargs)
+            self._tracker = HomographyTracker(self._config)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"tracker configuration: {exc}") from exc
+
+        self._counts: Counter[str] = Counter()
+        self._warned: set[str] = set()
+        self._durations: deque[float] = deque(maxlen=1000)
+        self._last_seq: int | None = None
+        self._last_frame_index = -1
+        self._keyframe_stamps: dict[int, tuple[Time, str]] = {}
+        self._reference: tuple[Time, str] | None = None
+        self._state_counts: Counter[str] = Counter()
+
+        qos = reliable_qos() if p["queue_policy"] == "lossless" else reliable_qos(p["queue_depth"])
+        self._pub = self.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
+        self._kf_pub = self.create_publisher(KeyframeMatches, topics.KEYFRAMES, reliable_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        self.create_subscription(IngestedFrame, topics.FRAME_IN, self._on_frame, qos)
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        self.get_logger().info(
+            f"tracking {topics.FRAME_IN} -> {self._pub.topic_name} ({p['queue_policy']}); "
+            f"max_features={self._config.max_features}, max_keyframes={self._config.max_keyframes}"
+        )
+
+    def _warn_once(self, kind: str, message: str) -> None:
+        self._counts[kind] += 1
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self.get_logger().warning(f"{kind}: {message} (further ones counted in diagnostics)")
+
+    def _on_frame(self, msg: IngestedFrame) -> None:
+        self._counts["frames_in"] += 1
+        if self._last_seq is not None and msg.seq > self._last_seq + 1:
+            self._counts["frames_dropped"] += msg.seq - self._last_seq - 1
+        elif self._last_seq is not None and msg.seq <= self._last_seq:
+            self._counts["seq_restarted"] += 1  # frame_ingest restarted
+        self._last_seq = msg.seq
+        result: TrackResult | None = None
+        start = time.perf_counter()
+        try:
+            image = mono8_from_msg(msg.image)
+            if not (msg.scale > 0.0 and math.isfinite(msg.scale)):
+                raise FrameError("bad_scale", f"scale {msg.scale}")
+            result = self._tracker.track(image, float(msg.scale), stamp_to_sec(msg.header.stamp))
+        except FrameError as exc:
+            self._warn_once(f"bad_frame_{exc.kind}", str(exc))
+        except Exception as exc:  # the tracker must never take the node down
+            self._warn_once("tracker_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            self._tracker.reset()
+        self._durations.append(time.perf_counter() - start)
+        self._publish(msg, result)
+
+    def _publish(self, frame: IngestedFrame, result: TrackResult | None) -> None:
+        out = HomographyStamped()
+        out.header = frame.header
+        out.image_width = frame.full_width
+        out.image_height = frame.full_height
+        out.encoders = frame.encoders
+        out.seq = frame.seq
+        H = None if result is None else result.H_ref
+        if result is not None:
+            if result.frame_index <= self._last_frame_index:  # the tracker was reset: new ids
+                self._keyframe_stamps.clear()
+                self._reference = None
+            self._last_frame_index = result.frame_index
+            if result.keyframe_id is not None and result.keyframe_id == result.frame_index:
+                self._keyframe_stamps[result.keyframe_id] = (frame.header.stamp, frame.header.frame_id)
+                self._prune_keyframe_stamps()
+            if result.reference_id is not None:
+                self._reference = self._keyframe_stamps.get(result.reference_id, self._reference)
+        state = HomographyStamped.TRACKING_LOST if result is None else _STATE[result.state]
+        if (
+            H is None
+            or not np.all(np.isfinite(H))
+            or state
+            in (
+                HomographyStamped.TRACKING_LOST,
+                HomographyStamped.TEXTURELESS,
+            )
+        ):
+            if H is not None and not np.all(np.isfinite(H)):
+                self._warn_once("non_finite_homography", "the tracker returned a non-finite homography")
+            if state not in (HomographyStamped.TRACKING_LOST, HomographyStamped.TEXTURELESS):
+                state = HomographyStamped.TRACKING_LOST
+            out.h = _IDENTITY.copy()
+            out.inlier_count = 0
+            out.match_count = 0 if result is None else int(result.match_count)
+            out.rms_transfer_error = 0.0
+        else:
+            out.h = np.asarray(H, dtype=float).ravel()
+            out.inlier_count = int(result.inlier_count)
+            out.match_count = int(result.match_count)
+            rms = float(result.rms_transfer_error)
+            out.rms_transfer_error = rms if math.isfinite(rms) else 0.0
+        out.state = state
+        if result is not None and result.keyframe_id is not None:
+            out.keyframe_id = int(result.keyframe_id)
+        if self._reference is not None:
+            out.reference_stamp, out.reference_frame_id = self._reference
+        self._state_counts[_state_name(state)] += 1
+        self._pub.publish(out)
+        self._counts["frames_out"] += 1
+        if result is not None:
+            for link in result.links:
+                self._publish_link(link)
+
+    def _publish_link(self, link: Any) -> None:
+        if not (np.all(np.isfinite(link.H)) and len(link.source_points) == len(link.target_points)):
+            self._warn_once("bad_keyframe_link", "a keyframe link with non-finite values was not published")
+            return
+        msg = KeyframeMatches()
+        stamp = self._keyframe_stamps.get(link.target_id)
+        if stamp is not None:
+            msg.header.stamp, msg.header.frame_id = stamp
+        msg.keyframe_id = int(link.target_id)
+        msg.other_keyframe_id = int(link.source_id)
+        msg.h = np.asarray(link.H, dtype=float).ravel()
+        msg.points = np.asarray(link.target_points, dtype=np.float32).ravel()
+        msg.other_points = np.asarray(link.source_points, dtype=np.float32).ravel()
+        self._kf_pub.publish(msg)
+        self._counts["keyframe_links_out"] += 1
+
+    def _prune_keyframe_stamps(self) -> None:
+        if len(self._keyframe_stamps) > 2 * self._config.max_keyframes + 8:
+            alive = set(self._tracker.keyframes())
+            for kid in [k for k in self._keyframe_stamps if k not in alive]:
+                del self._keyframe_stamps[kid]
+
+    def _publish_diagnostics(self) -> None:
+        counters: dict[str, Any] = {"frames_in": 0, "frames_out": 0, "frames_dropped": 0}
+        counters.update(sorted(self._counts.items()))
+        counters.update({f"state_{k}": v for k, v in sorted(self._state_counts.items())})
+        if self._durations:
+            d = np.asarray(self._durations) * 1e3
+            counters["track_ms_mean"] = f"{d.mean():.2f}"
+            counters["track_ms_p95"] = f"{np.percentile(d, 95):.2f}"
+            counters["track_ms_max"] = f"{d.max():.2f}"
+        counters["keyframes"] = len(self._keyframe_stamps)
+        status = DiagnosticStatus()
+        status.name = self.get_fully_qualified_name()
+        status.hardware_id = topics.CAMERA_FRAME_ID
+        lost = self._state_counts.get("TRACKING_LOST", 0) + self._state_counts.get("TEXTURELESS", 0)
+        status.level = DiagnosticStatus.OK
+        status.message = f"{counters['frames_out']} frames tracked ({lost} lost or textureless)"
+        if self._counts.get("tracker_error") or self._counts.get("frames_dropped"):
+            status.level = DiagnosticStatus.WARN
+        status.values = diagnostic_values(counters)
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self._diag_pub.publish(array)
+
+
+def _state_name(state: int) -> str:
+    return {
+        HomographyStamped.TRACKING: "TRACKING",
+        HomographyStamped.NEW_KEYFRAME: "NEW_KEYFRAME",
+        HomographyStamped.RELOCALISED: "RELOCALISED",
+        HomographyStamped.TRACKING_LOST: "TRACKING_LOST",
+        HomographyStamped.TEXTURELESS: "TEXTURELESS",
+    }.get(state, str(state))
+
+
+def main(args: list[str] | None = None) -> int:
+    try:
+        return run_node(HomographyTrackerNode, args)
+    except ConfigError as exc:
+        print(f"homography_tracker: configuration error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
