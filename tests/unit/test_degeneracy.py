@@ -1,0 +1,123 @@
+"""Degenerate motions and near-ambiguities (paper section 6) flagged by analyse_motion and the LM."""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+
+from ptz_selfcal.core.degeneracy import (
+    STATUS_INSUFFICIENT_ROTATION,
+    STATUS_NEAR_AMBIGUOUS,
+    STATUS_OK,
+    STATUS_SINGLE_AXIS,
+    analyse_motion,
+)
+from ptz_selfcal.core.geometry import (
+    intrinsic_matrix,
+    ptz_rotation,
+    relative_rotation,
+)
+from ptz_selfcal.core.homography import estimate_homography
+from ptz_selfcal.core.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
+from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+
+SIZE = (640, 480)
+CENTRE = (319.5, 239.5)
+
+
+def relative(R_world: np.ndarray) -> np.ndarray:
+    """Rotations of each frame relative to frame 0."""
+    return np.array([relative_rotation(R_world[0], Rj) for Rj in R_world])
+
+
+def zoom(n: int, f0: float, f1: float) -> np.ndarray:
+    return np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(f0, f1, n)])
+
+
+def circle(n: int, radius_deg: float, tilt0_deg: float = 0.0) -> np.ndarray:
+    phi = 2.0 * np.pi * np.arange(n) / n
+    r = np.radians(radius_deg)
+    return np.array([ptz_rotation(r * np.cos(a), np.radians(tilt0_deg) + r * np.sin(a)) for a in phi])
+
+
+def test_circle_of_paper_configuration_a_is_ok() -> None:
+    report = analyse_motion(relative(circle(30, 5.0)), zoom(30, 800.0, 1400.0), SIZE)
+    assert report.status == STATUS_OK and report.well_posed
+    assert 9.0 < report.rotation_extent_deg[0] < 10.5 and 9.0 < report.rotation_extent_deg[1] < 10.5
+    assert report.rotation_extent_deg[2] < 1.0
+    assert report.disambiguation_px > 10.0
+
+
+def test_pan_only_and_tilt_only_are_degenerate() -> None:
+    angles = np.radians(np.linspace(0.0, 20.0, 15))
+    for R_world in (
+        np.array([ptz_rotation(a, np.radians(10.0)) for a in angles]),  # pan about a tilted camera
+        np.array([ptz_rotation(np.radians(-5.0), a) for a in angles]),
+    ):
+        report = analyse_motion(relative(R_world), zoom(15, 800.0, 1200.0), SIZE)
+        assert report.status == STATUS_SINGLE_AXIS and not report.well_posed
+        assert report.single_axis and report.axis_ratio < 1e-6
+
+
+def test_tiny_rotation_at_long_focal_is_near_ambiguous() -> None:
+    """Section 6.2: (x/f)(x theta) below a pixel at f = 8000 px with 1 deg of rotation."""
+    report = analyse_motion(relative(circle(20, 1.0)), zoom(20, 8000.0, 9000.0), SIZE)
+    assert report.status == STATUS_NEAR_AMBIGUOUS and not report.well_posed
+    assert report.disambiguation_px < 1.0
+    # the same motion at a short focal length is fine
+    assert analyse_motion(relative(circle(20, 1.0)), zoom(20, 400.0, 450.0), SIZE).status == STATUS_OK
+
+
+def test_insufficient_rotation() -> None:
+    report = analyse_motion(relative(circle(10, 0.1)), zoom(10, 800.0, 900.0), SIZE)
+    assert report.status == STATUS_INSUFFICIENT_ROTATION and not report.well_posed
+
+
+def test_large_relative_focal_uncertainty_is_near_ambiguous() -> None:
+    K = zoom(30, 800.0, 1400.0)
+    R = relative(circle(30, 5.0))
+    assert analyse_motion(R, K, SIZE, sigma_f=0.005 * K[:, 1, 1]).status == STATUS_OK
+    report = analyse_motion(R, K, SIZE, sigma_f=0.05 * K[:, 1, 1])
+    assert report.status == STATUS_NEAR_AMBIGUOUS
+    assert abs(report.relative_sigma_f - 0.05) < 1e-12
+
+
+def test_report_is_yaml_serialisable() -> None:
+    report = analyse_motion(
+        relative(circle(30, 5.0)), zoom(30, 800.0, 1400.0), SIZE, sigma_f=np.full(30, 3.0)
+    )
+    data = yaml.safe_load(yaml.safe_dump(report.to_dict()))
+    assert data["status"] == STATUS_OK and len(data["rotation_extent_deg"]) == 3
+
+
+def _noisy_paper_b(sigma: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    n = 30
+    K = zoom(n, 1200.0, 2000.0)
+    R_world = circle(n, 3.5)
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-1.5, 1.5, (1000, 3)) + np.array([0.0, 0.0, 5.0])
+    pts, vis = [], []
+    for Kj, Rj in zip(K, R_world):
+        p = X @ (Kj @ Rj).T
+        p = p[:, :2] / p[:, 2:]
+        vis.append(np.all((p >= 0.0) & (p <= [SIZE[0] - 1.0, SIZE[1] - 1.0]), axis=1))
+        pts.append(p + rng.normal(0.0, sigma, p.shape))
+    H = [np.eye(3)]
+    for j in range(1, n):
+        m = vis[0] & vis[j]
+        H.append(estimate_homography(pts[0][m], pts[j][m]))
+    return np.array(H), K
+
+
+def test_varying_pp_breakdown_in_configuration_b_is_flagged() -> None:
+    """Paper 4.1/6.2: LM with varying pp breaks down in config B at sigma >= 1.5 px; not confident."""
+    for seed in range(3):
+        H, K = _noisy_paper_b(2.0, seed)
+        varying = lm_selfcalibration(H, SIZE, SQUARE_VARYING_PP)
+        assert not varying.ok
+        assert varying.motion is not None and varying.motion.status == STATUS_NEAR_AMBIGUOUS
+        assert varying.motion.relative_sigma_f > 0.02
+        constant = lm_selfcalibration(H, SIZE, SQUARE_CONSTANT_PP)
+        assert constant.ok, constant.message
+        assert constant.motion.status == STATUS_OK
+        assert np.sqrt(np.mean((constant.K[:, 1, 1] / K[:, 1, 1] - 1.0) ** 2)) < 0.08
