@@ -102,6 +102,12 @@ def test_extrapolation_is_flagged_and_uncertain():
     assert inside.in_range and not outside.in_range
     assert outside.sigma_f / outside.K[0, 0] > 3.0 * inside.sigma_f / inside.K[0, 0]
     assert outside.K[0, 0] > model.predict(900.0).K[0, 0]  # log f extended with the end slope
+    # a few keyframes spread over the range: between them is inside the visited range
+    sparse = ZoomModel()
+    for z in np.linspace(0.0, 1000.0, 9):
+        sparse.add_sample(z, float(f_true(z)), 640.0, 360.0)
+    assert sparse.predict(437.0).in_range and not sparse.predict(1001.0).in_range
+    assert sparse.predict(437.0).K[0, 0] == pytest.approx(float(f_true(437.0)), rel=0.01)
     with pytest.raises(ZoomModelError):
         ZoomModel().predict(10.0)
     assert not ZoomModel().add_sample(1.0, float("nan"), 640.0, 360.0)

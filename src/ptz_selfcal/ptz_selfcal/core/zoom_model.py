@@ -57,7 +57,7 @@ class ZoomPrediction(NamedTuple):
     K: Array  # 3x3, full-resolution pixels
     D: Array  # plumb_bob [k1, k2, 0, 0, 0]
     sigma_f: float  # 1-sigma of f in pixels
-    in_range: bool  # zoom inside the visited range (and not in a large gap)
+    in_range: bool  # zoom inside the visited range [lowest, highest zoom added]
 
 
 class _Fit(NamedTuple):
@@ -108,7 +108,6 @@ class ZoomModel:
         bin_width: float | None = None,
         max_basis: int = 10,
         smoothing: float = 1e-3,
-        gap_bins: float = 3.0,
     ) -> None:
         if max_bins < 4:
             raise ValueError("max_bins must be >= 4")
@@ -116,7 +115,6 @@ class ZoomModel:
         self.bin_width = bin_width
         self.max_basis = max_basis
         self.smoothing = smoothing
-        self.gap_bins = gap_bins
         self._bins: dict[int, Array] = {}
         self._zoom_limits: tuple[float, float] | None = None  # lowest and highest zoom ever added
         self._fit: _Fit | None = None
@@ -291,10 +289,8 @@ class ZoomModel:
         out["sigma_f"] = out["f"] * (sig["log_f"] + 0.5 * extrapolated)
         out["sigma_cx"], out["sigma_cy"] = sig["cx"], sig["cy"]
         out["sigma_k1"], out["sigma_k2"] = sig["k1"], sig["k2"]
-        assert self.bin_width is not None
-        nearest = float(np.min(np.abs(fit.bin_z - zoom)))
         lo, hi = self._zoom_limits or (fit.z_lo, fit.z_hi)
-        out["in_range"] = bool(lo <= zoom <= hi and nearest <= self.gap_bins * self.bin_width)
+        out["in_range"] = bool(lo <= zoom <= hi)
         return out
 
     def predict(self, zoom: float) -> ZoomPrediction:
@@ -323,7 +319,6 @@ class ZoomModel:
                 "bin_width": self.bin_width,
                 "max_basis": self.max_basis,
                 "smoothing": self.smoothing,
-                "gap_bins": self.gap_bins,
             },
             "zoom_limits": None if self._zoom_limits is None else [float(v) for v in self._zoom_limits],
             "bins": bins,
@@ -349,7 +344,6 @@ class ZoomModel:
                 bin_width=None if width is None else float(width),
                 max_basis=int(settings["max_basis"]),
                 smoothing=float(settings["smoothing"]),
-                gap_bins=float(settings["gap_bins"]),
             )
             for entry in bins:
                 row = np.array([float(entry[name]) for name in _SUM_FIELDS])
