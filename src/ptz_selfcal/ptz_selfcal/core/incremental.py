@@ -161,6 +161,8 @@ class IncrementalCalibrator:
         if len(self.keyframes) > self.max_keyframes:
             self._drop_redundant(len(self.keyframes) - self.max_keyframes)
         self._adds_since_solve += 1
+        if self.calibrated and self._adds_since_solve < self.solve_interval:
+            return self.state  # nothing due: keep adding O(1) (bounded) work only
         self.motion = self._motion_from_current_calibration()
         if self.motion.status == STATUS_INSUFFICIENT_ROTATION or len(self.keyframes) < self.min_keyframes:
             if not self.calibrated:
@@ -330,7 +332,7 @@ class IncrementalCalibrator:
 
     def _transferred_intrinsics(self, H: Array) -> Array:
         K_ref = self.reference_K
-        return np.array([intrinsics_from_transferred_diac(h, K_ref, self.model, self.image_size) for h in H])
+        return intrinsics_from_transferred_diac(H, K_ref, self.model, self.image_size)
 
     def _motion_from_current_calibration(self) -> MotionReport:
         """Section-6 analysis of the keyframes' rotations under the current (or prior) calibration."""
@@ -346,7 +348,7 @@ class IncrementalCalibrator:
         """
         H = np.array([kf.H for kf in self.keyframes])
         K_ref = self.reference_K
-        K = np.array([intrinsics_from_transferred_diac(h, K_ref, self.model, self.image_size) for h in H])
+        K = intrinsics_from_transferred_diac(H, K_ref, self.model, self.image_size)
         R = rotations_from_homographies(
             np.concatenate([np.eye(3)[None], H]), np.concatenate([K_ref[None], K])
         )[1:]
@@ -367,44 +369,60 @@ def intrinsics_from_transferred_diac(
 ) -> Array:
     """K_j from the reference DIAC transferred by H_j: omega*_j = H omega*_0 H^T (eq. 20).
 
-    With a constant or known principal point (and known/constant aspect and skew taken from K_ref)
-    only f is free: lambda omega*_j = f^2 P + Q is linear in (lambda, f^2) and solved by least squares
-    in coordinates centred and scaled by K_ref's focal length. Otherwise K_j is the Cholesky factor.
+    H is (3, 3) or (n, 3, 3); returns K of the same leading shape. With a constant or known
+    principal point (aspect and skew taken from K_ref) only f is free: lambda omega*_j = f^2 P + Q
+    is linear in (lambda, f^2), solved by least squares in coordinates centred and scaled by
+    K_ref's focal length. Otherwise (per-frame principal point) K_j is the Cholesky factor.
     """
+    H = np.asarray(H, dtype=float)
+    single = H.ndim == 2
+    H = H.reshape(-1, 3, 3)
     K_ref = np.asarray(K_ref, dtype=float)
     s = K_ref[1, 1]
     c = image_centre(image_size)
     N = np.array([[1.0 / s, 0.0, -c[0] / s], [0.0, 1.0 / s, -c[1] / s], [0.0, 0.0, 1.0]])
-    Hn = N @ np.asarray(H, dtype=float) @ np.linalg.inv(N)
+    Hn = N @ H @ np.linalg.inv(N)
     Kn_ref = N @ K_ref
-    diac = Hn @ Kn_ref @ Kn_ref.T @ Hn.T
+    diac = Hn @ (Kn_ref @ Kn_ref.T) @ np.swapaxes(Hn, 1, 2)
     if model.principal_point is ParamMode.VARYING or model.focal is not ParamMode.VARYING:
         K_n = _upper_cholesky(diac)
     else:
-        gamma, skew = Kn_ref[0, 0] / Kn_ref[1, 1], Kn_ref[0, 1] / Kn_ref[1, 1]
-        pp = Kn_ref[:2, 2]
-        P = np.array([[gamma**2 + skew**2, skew, 0.0], [skew, 1.0, 0.0], [0.0, 0.0, 0.0]])
-        p3 = np.append(pp, 1.0)
-        Q = np.outer(p3, p3)
-        A = np.column_stack([diac.ravel(), -P.ravel()])
-        _scale, f2 = np.linalg.lstsq(A, Q.ravel(), rcond=None)[0]
-        if not f2 > 0.0:
-            raise SelfCalibrationError("transferred DIAC gives a non-positive focal length")
-        f = np.sqrt(f2)
-        K_n = np.array([[gamma * f, skew * f, pp[0]], [0.0, f, pp[1]], [0.0, 0.0, 1.0]])
+        K_n = _fit_focal(diac, Kn_ref)
     K = np.linalg.inv(N) @ K_n
-    return K / K[2, 2]
+    K = K / K[:, 2:3, 2:3]
+    return K[0] if single else K
+
+
+def _fit_focal(diac: Array, K_ref: Array) -> Array:
+    """(n, 3, 3) K with K_ref's aspect, skew and principal point, f^2 by least squares on the DIAC."""
+    gamma, skew = K_ref[0, 0] / K_ref[1, 1], K_ref[0, 1] / K_ref[1, 1]
+    pp = K_ref[:2, 2]
+    P = np.array([[gamma**2 + skew**2, skew, 0.0], [skew, 1.0, 0.0], [0.0, 0.0, 0.0]]).ravel()
+    p3 = np.append(pp, 1.0)
+    Q = np.outer(p3, p3).ravel()
+    d = diac.reshape(-1, 9)
+    # Normal equations of [d, -P] [lambda, f^2]^T = Q, one 2x2 system per frame.
+    a11, a12, a22 = np.einsum("ni,ni->n", d, d), -(d @ P), P @ P
+    b1, b2 = d @ Q, -(P @ Q)
+    f2 = (a11 * b2 - a12 * b1) / (a11 * a22 - a12**2)
+    if not np.all(f2 > 0.0):
+        raise SelfCalibrationError("transferred DIAC gives a non-positive focal length")
+    f = np.sqrt(f2)
+    K = np.zeros((len(d), 3, 3))
+    K[:, 0, 0], K[:, 0, 1], K[:, 1, 1] = gamma * f, skew * f, f
+    K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = pp[0], pp[1], 1.0
+    return K
 
 
 def _upper_cholesky(diac: Array) -> Array:
-    """Upper-triangular K with K K^T = diac (K[2, 2] = 1)."""
-    diac = 0.5 * (diac + diac.T)
-    if np.linalg.eigvalsh(diac)[0] <= 0.0:
+    """(n, 3, 3) upper-triangular K with K K^T = diac (K[2, 2] = 1)."""
+    diac = 0.5 * (diac + np.swapaxes(diac, 1, 2))
+    if np.any(np.linalg.eigvalsh(diac)[:, 0] <= 0.0):
         raise SelfCalibrationError("transferred DIAC is not positive definite")
     flip = np.eye(3)[::-1]
     L = np.linalg.cholesky(flip @ diac @ flip)  # reverse-order Cholesky gives an upper factor
     K = flip @ L @ flip
-    return K / K[2, 2]
+    return K / K[:, 2:3, 2:3]
 
 
 def model_to_dict(model: IntrinsicsModel) -> dict:

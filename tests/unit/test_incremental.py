@@ -1,0 +1,143 @@
+"""Incremental calibrator API (DESIGN.md 5.7): O(1) per-frame K, bounded keyframes, state, persistence."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import yaml
+
+from ptz_selfcal.core.geometry import (
+    infinite_homography,
+    intrinsic_matrix,
+    ptz_rotation,
+    relative_rotation,
+    rotation_angle,
+)
+from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator, Keyframe, lm_solver
+from ptz_selfcal.core.intrinsics import SQUARE_VARYING_PP
+from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+
+SIZE = (640, 480)
+CENTRE = (319.5, 239.5)
+
+
+def sequence(n: int, radius_deg: float = 5.0, f0: float = 800.0, f1: float = 1400.0):
+    """Paper 4.1 style: principal ray on a circle, linear zoom; returns K, world R and exact H."""
+    phi = 2.0 * np.pi * np.arange(n) / n
+    r = np.radians(radius_deg)
+    R = np.array([ptz_rotation(r * np.cos(a), r * np.sin(a)) for a in phi])
+    K = np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(f0, f1, n)])
+    H = np.array([infinite_homography(K[0], K[j], relative_rotation(R[0], R[j])) for j in range(n)])
+    return K, R, H
+
+
+def rel_err(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.max(np.abs(A - B)) / B[1, 1])
+
+
+def test_per_frame_intrinsics_equal_batch_answer_on_exact_data() -> None:
+    K, R, H = sequence(30)
+    keyframes = list(range(1, 30, 2))
+    calibrator = IncrementalCalibrator(SIZE, max_keyframes=20)
+    for j in keyframes:
+        calibrator.add_keyframe(j, H[j], stamp=0.1 * j)
+    assert calibrator.state in (CalibrationState.CALIBRATING, CalibrationState.CONVERGED)
+    batch = lm_selfcalibration(np.concatenate([H[:1], H[keyframes]]), SIZE)
+    assert rel_err(calibrator.reference_K, batch.K[0]) < 1e-6
+    for j in range(30):  # keyframes and frames that never were keyframes
+        K_j, R_j, sigma_f = calibrator.frame_intrinsics(H[j])
+        assert rel_err(K_j, K[j]) < 1e-6
+        assert rotation_angle(R_j @ relative_rotation(R[0], R[j]).T) < 1e-7
+        assert np.isfinite(sigma_f) and sigma_f >= 0.0
+    for n, j in enumerate(keyframes):
+        assert rel_err(calibrator.frame_intrinsics(H[j])[0], batch.K[n + 1]) < 1e-6
+
+
+def test_varying_pp_model_per_frame_intrinsics() -> None:
+    K, _, H = sequence(20)
+    calibrator = IncrementalCalibrator(SIZE, SQUARE_VARYING_PP)
+    for j in range(1, 20):
+        calibrator.add_keyframe(j, H[j])
+    for j in (0, 7, 19):
+        assert rel_err(calibrator.frame_intrinsics(H[j])[0], K[j]) < 1e-6
+
+
+def test_states_initialising_then_calibrating_then_converged() -> None:
+    _, _, H = sequence(30)
+    calibrator = IncrementalCalibrator(SIZE, min_rotation_deg=2.0)
+    assert calibrator.state is CalibrationState.INITIALISING
+    assert np.allclose(calibrator.frame_intrinsics(H[1])[0][:2, 2], CENTRE, atol=30.0)  # prior still answers
+    states = [calibrator.add_keyframe(j, H[j]) for j in range(1, 30)]
+    assert states[0] is CalibrationState.INITIALISING  # 0.5 deg of rotation only
+    assert CalibrationState.CALIBRATING in states
+    assert states[-1] is CalibrationState.CONVERGED
+
+
+def test_pan_only_motion_is_degenerate() -> None:
+    n = 20
+    K = np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(800.0, 1000.0, n)])
+    R = np.array([ptz_rotation(a, 0.0) for a in np.radians(np.linspace(0.0, 15.0, n))])
+    calibrator = IncrementalCalibrator(SIZE)
+    for j in range(1, n):
+        state = calibrator.add_keyframe(j, infinite_homography(K[0], K[j], relative_rotation(R[0], R[j])))
+    assert state is CalibrationState.DEGENERATE_MOTION
+    assert not calibrator.calibrated
+
+
+def test_state_round_trip_through_yaml() -> None:
+    K, _, H = sequence(30)
+    calibrator = IncrementalCalibrator(SIZE, max_keyframes=12)
+    for j in range(1, 30):
+        calibrator.add_keyframe(f"kf{j}", H[j], stamp=float(j))
+    restored = IncrementalCalibrator.from_dict(yaml.safe_load(yaml.safe_dump(calibrator.to_dict())))
+    assert restored.state is calibrator.state
+    assert len(restored.keyframes) == len(calibrator.keyframes) <= 12
+    assert np.array_equal(restored.reference_K, calibrator.reference_K)
+    assert rel_err(restored.frame_intrinsics(H[11])[0], K[11]) < 1e-6
+    restored.reoptimise()
+    assert rel_err(restored.reference_K, K[0]) < 1e-6
+
+
+def test_solver_seam_receives_keyframe_records() -> None:
+    _, _, H = sequence(16)
+    seen: list[int] = []
+
+    def solver(H_set, image_size, model, K_init, keyframes: list[Keyframe], max_nfev: int):
+        seen.append(sum(kf.matches is not None for kf in keyframes))
+        return lm_solver(H_set, image_size, model, K_init, keyframes, max_nfev)
+
+    calibrator = IncrementalCalibrator(SIZE, solver=solver)
+    for j in range(1, 16):
+        calibrator.add_keyframe(j, H[j], matches={"points": np.zeros((4, 2))})
+    assert seen and seen[-1] == 15
+    assert calibrator.calibrated
+    assert calibrator.reoptimise(max_seconds=0.05) is calibrator.state
+
+
+def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
+    """5000 frames, each offered as a keyframe: memory and per-call time stay bounded."""
+    n, max_keyframes = 5000, 25
+    t = np.arange(n) / 50.0
+    pan = np.radians(20.0) * np.sin(0.31 * t)
+    tilt = np.radians(8.0) * np.sin(0.53 * t + 0.4)
+    f = 1100.0 + 500.0 * np.sin(0.17 * t)
+    K0 = intrinsic_matrix(f[0], *CENTRE)
+    R0 = ptz_rotation(pan[0], tilt[0])
+    calibrator = IncrementalCalibrator(SIZE, max_keyframes=max_keyframes, solve_interval=500)
+    times = np.empty(n)
+    worst = 0.0
+    for i in range(1, n):
+        K_i = intrinsic_matrix(f[i], *CENTRE)
+        H = infinite_homography(K0, K_i, relative_rotation(R0, ptz_rotation(pan[i], tilt[i])))
+        start = time.perf_counter()
+        calibrator.add_keyframe(i, H, stamp=float(t[i]))
+        K_est, _, _ = calibrator.frame_intrinsics(H)
+        times[i] = time.perf_counter() - start
+        assert len(calibrator.keyframes) <= max_keyframes
+        if calibrator.calibrated and i % 250 == 0:
+            worst = max(worst, rel_err(K_est, K_i))
+    assert calibrator.state is CalibrationState.CONVERGED
+    assert worst < 1e-6
+    early, late = np.median(times[1:1000]), np.median(times[-1000:])
+    assert late < 3.0 * early + 1e-4
