@@ -155,6 +155,8 @@ def lm_selfcalibration(
     """Self-calibration by LM on eq. 22 from H[j] mapping frame-0 pixels to frame-j pixels (H[0] = I).
 
     f_min (pixels) bounds every focal length from below; default 0.1 x the smallest initial focal.
+    MINPACK LM runs first; only if it leaves the admissible range is the solve repeated with the
+    bound enforced (trust-region reflective), and ending on the bound is reported as a failure.
     The result carries 1-sigma uncertainties from the final Jacobian and a MotionReport (section 6);
     ok is False when f collapsed onto f_min (eq. 22's f -> 0 solution) or the motion is not well
     posed. Raises SelfCalibrationError on invalid input.
@@ -179,8 +181,9 @@ def lm_selfcalibration(
     f_index = np.unique(problem.index[:, F][problem.index[:, F] >= 0])
     lower[f_index] = f_floor
     p0[f_index] = np.maximum(p0[f_index], 1.001 * f_floor)
-    bounded = model.principal_point is ParamMode.VARYING or f_min is not None
-    if bounded:
+    sol = least_squares(problem.residuals, p0, jac=problem.jacobian, method="lm", max_nfev=max_nfev)
+    if np.any(sol.x[f_index] <= f_floor):
+        # f left its admissible range (eq. 22's f -> 0 valley): re-solve with f bounded below.
         sol = least_squares(
             problem.residuals,
             p0,
@@ -189,8 +192,6 @@ def lm_selfcalibration(
             method="trf",
             max_nfev=max_nfev,
         )
-    else:
-        sol = least_squares(problem.residuals, p0, jac=problem.jacobian, method="lm", max_nfev=max_nfev)
     values, K_n = problem.intrinsics(sol.x)
     K = np.linalg.inv(N) @ K_n
     K /= K[:, 2:3, 2:3]
@@ -237,7 +238,11 @@ def _uncertainty(J: Array, residuals: Array, problem: _Eq22Problem, nominal: flo
     m, p = J.shape
     dof = max(m - p, 1)
     variance = float(residuals @ residuals) / dof
-    cov = np.linalg.pinv(J.T @ J) * variance
+    JtJ = J.T @ J
+    try:
+        cov = np.linalg.inv(JtJ) * variance
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(JtJ) * variance
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * nominal
     sd = np.append(sd, 0.0)  # index -1 (KNOWN) reads 0
     index = problem.index
