@@ -1,0 +1,379 @@
+"""`ptz-selfcal launch`: start the node suite as separate processes and supervise it (no ros2 launch here).
+
+Each node (frame_ingest, homography_tracker, calibrator) runs as `python -m ptz_selfcal.nodes.<name>
+--ros-args -r __node:=<name> [-r __ns:=NS] --params-file FILE [-r FROM:=TO ...]`. Their output is
+prefixed with the node name. A node that dies unexpectedly is restarted with exponential backoff
+(counted and logged); a node that exits with status 2 (its configuration error) or dies within its first
+seconds stops the suite with that node's message. Ctrl-C/SIGTERM stops every child cleanly: SIGINT, wait,
+then SIGTERM and SIGKILL after timeouts; the supervisor exits 0. Children get SIGTERM from the kernel if
+the supervisor itself is killed (PR_SET_PDEATHSIG), so no orphan survives it.
+
+The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
+/ns/name, /**/name, /**) to {ros__parameters: {...}}. Plain node-name keys are rewritten to /**/name in a
+temporary copy so that they apply under any namespace.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from ptz_selfcal.tools.cli import CliError
+
+NODE_MODULES = {
+    "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
+    "homography_tracker": "ptz_selfcal.nodes.homography_tracker",
+    "calibrator": "ptz_selfcal.nodes.calibrator",
+}
+CONFIG_ERROR_STATUS = 2  # nodes exit with this status on a configuration error
+
+
+def default_params_file() -> Path:
+    """config/ptz_selfcal.yaml: from the source tree, else from the installed share directory."""
+    here = Path(__file__).resolve().parents[2] / "config" / "ptz_selfcal.yaml"
+    if here.exists():
+        return here
+    return Path(sys.prefix) / "share" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# parameter files
+
+
+def load_params_file(path: str | os.PathLike[str], known_nodes: Sequence[str]) -> dict[str, Any]:
+    """Read and check a ROS parameter YAML file; CliError with a one-line reason otherwise."""
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise CliError(f"{path}: cannot read parameter file ({exc.strerror or exc})") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        where = getattr(exc, "problem_mark", None)
+        line = f" at line {where.line + 1}" if where is not None else ""
+        raise CliError(f"{path}: not valid YAML{line}") from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise CliError(f"{path}: expected a mapping of node names to {{ros__parameters: ...}}")
+    for key, section in data.items():
+        name = str(key).rstrip("/").rsplit("/", 1)[-1]
+        if name not in known_nodes and name not in ("*", "**"):
+            raise CliError(f"{path}: unknown node {key!r} (known: {', '.join(known_nodes)})")
+        if not isinstance(section, dict) or "ros__parameters" not in section:
+            raise CliError(f"{path}: section {key!r} must contain ros__parameters")
+        params = section["ros__parameters"]
+        if params is None:
+            section["ros__parameters"] = {}
+        elif not isinstance(params, dict):
+            raise CliError(f"{path}: {key}.ros__parameters must be a mapping")
+        else:
+            _check_values(path, str(key), params)
+    return data
+
+
+def _check_values(path: Path, prefix: str, params: dict[str, Any]) -> None:
+    for name, value in params.items():
+        where = f"{prefix}.{name}"
+        if isinstance(value, dict):
+            _check_values(path, where, value)
+        elif isinstance(value, list):
+            kinds = {type(v) for v in value}
+            if len(kinds) > 1 and kinds != {int, float}:
+                raise CliError(f"{path}: {where} mixes value types in a list")
+            if any(isinstance(v, dict | list) or v is None for v in value):
+                raise CliError(f"{path}: {where} must be a list of plain values")
+        elif value is None:
+            raise CliError(f"{path}: {where} has no value")
+
+
+def namespaced_params_file(data: dict[str, Any], directory: str) -> Path:
+    """A copy of the parameters whose plain node-name keys match the node in any namespace."""
+    import yaml
+
+    out = {}
+    for key, section in data.items():
+        key = str(key)
+        out[key if key.startswith("/") else f"/**/{key}"] = section
+    path = Path(directory) / "params.yaml"
+    path.write_text(yaml.safe_dump(out, sort_keys=False))
+    return path
+
+
+def check_remaps(remaps: Sequence[str]) -> list[str]:
+    for remap in remaps:
+        src, sep, dst = remap.partition(":=")
+        if not sep or not src or not dst:
+            raise CliError(f"--remap wants FROM:=TO, got {remap!r}")
+    return list(remaps)
+
+
+def check_namespace(namespace: str | None) -> str | None:
+    if not namespace:
+        return None
+    ns = namespace if namespace.startswith("/") else "/" + namespace
+    parts = ns.strip("/").split("/")
+    if not all(p and (p[0].isalpha() or p[0] == "_") and p.replace("_", "").isalnum() for p in parts):
+        raise CliError(f"--namespace {namespace!r} is not a valid ROS namespace")
+    return ns.rstrip("/")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the supervisor
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    module: str
+    args: list[str] = field(default_factory=list)  # extra --ros-args arguments (after the params file)
+
+
+@dataclass
+class _Child:
+    spec: NodeSpec
+    process: subprocess.Popen | None = None
+    started: float = 0.0
+    starts: int = 0
+    restarts: int = 0
+    failures: int = 0  # consecutive quick deaths (backoff exponent)
+    restart_at: float | None = None
+    tail: deque[str] = field(default_factory=lambda: deque(maxlen=20))
+    reader: threading.Thread | None = None
+
+
+def _set_pdeathsig() -> None:  # runs in the child between fork and exec
+    with contextlib.suppress(Exception):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class SupervisorError(Exception):
+    """The suite cannot run (a node failed at start-up or has a configuration error)."""
+
+
+class Supervisor:
+    """Starts node processes, prefixes their output, restarts them, stops them cleanly."""
+
+    def __init__(
+        self,
+        specs: Sequence[NodeSpec],
+        params_file: str | os.PathLike[str] | None = None,
+        namespace: str | None = None,
+        remaps: Sequence[str] = (),
+        output: IO[str] | None = None,
+        startup_grace: float = 3.0,
+        stable_after: float = 30.0,
+        max_backoff: float = 30.0,
+        echo: bool = True,
+        log: Callable[[str], None] | None = None,
+    ) -> None:
+        self.children = [_Child(spec) for spec in specs]
+        self.params_file = str(params_file) if params_file else None
+        self.namespace = namespace
+        self.remaps = list(remaps)
+        self.output = output or sys.stdout
+        self.echo = echo
+        self.startup_grace = startup_grace
+        self.stable_after = stable_after
+        self.max_backoff = max_backoff
+        self._lock = threading.Lock()
+        self._stopping = False
+        self.fatal: str | None = None
+        self._log = log or (lambda text: self._write(f"[launch] {text}\n"))
+
+    # -- output
+    def _write(self, text: str) -> None:
+        with self._lock:
+            try:
+                self.output.write(text)
+                self.output.flush()
+            except (OSError, ValueError):
+                pass
+
+    def _pump(self, child: _Child, stream: IO[bytes]) -> None:
+        for raw in iter(stream.readline, b""):
+            line = raw.decode(errors="replace").rstrip("\n")
+            child.tail.append(line)
+            if self.echo:
+                self._write(f"[{child.spec.name}] {line}\n")
+        stream.close()
+
+    # -- processes
+    def command(self, spec: NodeSpec) -> list[str]:
+        cmd = [sys.executable, "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}"]
+        if self.namespace:
+            cmd += ["-r", f"__ns:={self.namespace}"]
+        if self.params_file:
+            cmd += ["--params-file", self.params_file]
+        for remap in self.remaps:
+            cmd += ["-r", remap]
+        return cmd + list(spec.args)
+
+    def _spawn(self, child: _Child) -> None:
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+        child.process = subprocess.Popen(
+            self.command(child.spec),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children in order
+            preexec_fn=_set_pdeathsig,
+        )
+        child.started = time.monotonic()
+        child.starts += 1
+        child.restart_at = None
+        child.reader = threading.Thread(target=self._pump, args=(child, child.process.stdout), daemon=True)
+        child.reader.start()
+        self._log(f"started {child.spec.name} (pid {child.process.pid})")
+
+    def start(self) -> None:
+        for child in self.children:
+            self._spawn(child)
+
+    def pids(self) -> dict[str, int]:
+        return {c.spec.name: c.process.pid for c in self.children if c.process is not None}
+
+    @property
+    def restarts(self) -> dict[str, int]:
+        return {c.spec.name: c.restarts for c in self.children}
+
+    def poll(self) -> None:
+        """Notice dead children and restart them (with backoff); sets `fatal` when the suite cannot run."""
+        now = time.monotonic()
+        for child in self.children:
+            if self._stopping or self.fatal:
+                return
+            proc = child.process
+            if proc is None:
+                if child.restart_at is not None and now >= child.restart_at:
+                    child.restarts += 1
+                    self._spawn(child)
+                continue
+            code = proc.poll()
+            if code is None:
+                if now - child.started > self.stable_after:
+                    child.failures = 0
+                continue
+            if child.reader is not None:
+                child.reader.join(timeout=1.0)
+            lived = now - child.started
+            child.process = None
+            last = next((line for line in reversed(child.tail) if line.strip()), "")
+            if code == CONFIG_ERROR_STATUS or (child.starts == 1 and lived < self.startup_grace):
+                self.fatal = f"{child.spec.name} exited with status {code} at start-up" + (
+                    f": {last}" if last else ""
+                )
+                self._log(self.fatal)
+                return
+            child.failures = child.failures + 1 if lived < self.stable_after else 1
+            delay = min(self.max_backoff, 0.5 * 2 ** (child.failures - 1))
+            child.restart_at = now + delay
+            self._log(
+                f"{child.spec.name} exited unexpectedly with status {code} after {lived:.1f} s; "
+                f"restart #{child.restarts + 1} in {delay:.1f} s"
+            )
+
+    def running(self) -> list[str]:
+        return [c.spec.name for c in self.children if c.process is not None and c.process.poll() is None]
+
+    def stop(self, timeout: float = 5.0, term_timeout: float = 3.0) -> dict[str, int | None]:
+        """SIGINT every child, wait up to `timeout`, then SIGTERM, then SIGKILL. Returns exit codes."""
+        self._stopping = True
+        procs = {c.spec.name: c.process for c in self.children if c.process is not None}
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, term_timeout), (signal.SIGKILL, 5.0)):
+            alive = {n: p for n, p in procs.items() if p.poll() is None}
+            if not alive:
+                break
+            if sig != signal.SIGINT:
+                self._log(f"{', '.join(alive)} still running: sending {signal.Signals(sig).name}")
+            for proc in alive.values():
+                with contextlib.suppress(ProcessLookupError):
+                    proc.send_signal(sig)
+            deadline = time.monotonic() + wait
+            for proc in alive.values():
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        codes = {n: p.poll() for n, p in procs.items()}
+        for child in self.children:
+            if child.reader is not None:
+                child.reader.join(timeout=1.0)
+        return codes
+
+
+# ---------------------------------------------------------------------------------------------------------
+# command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--params", metavar="FILE", help="parameter YAML (default: config/ptz_selfcal.yaml)")
+    parser.add_argument("--namespace", metavar="NS", help="namespace of the suite, e.g. /cam1")
+    parser.add_argument(
+        "--remap", nargs="+", default=[], metavar="FROM:=TO", help="topic remappings given to every node"
+    )
+    parser.add_argument(
+        "--nodes",
+        nargs="+",
+        choices=list(NODE_MODULES),
+        default=list(NODE_MODULES),
+        help="start only these nodes (default: all three)",
+    )
+    parser.add_argument("--stop-timeout", type=float, default=5.0, help="seconds to wait after SIGINT")
+
+
+def prepare(
+    params: str | None, namespace: str | None, remaps: Sequence[str], tmpdir: str
+) -> tuple[Path, str | None, list[str]]:
+    """Validate the command-line inputs; returns the params file to pass to the nodes."""
+    source = Path(params) if params else default_params_file()
+    data = load_params_file(source, list(NODE_MODULES))
+    return namespaced_params_file(data, tmpdir), check_namespace(namespace), check_remaps(remaps)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.stop_timeout > 0:
+        raise CliError("--stop-timeout must be > 0")
+    with tempfile.TemporaryDirectory(prefix="ptz_selfcal_launch_") as tmp:
+        params_file, namespace, remaps = prepare(args.params, args.namespace, args.remap, tmp)
+        specs = [NodeSpec(name, NODE_MODULES[name]) for name in args.nodes]
+        supervisor = Supervisor(specs, params_file, namespace, remaps)
+        stop = threading.Event()
+
+        def on_signal(signum: int, _frame: Any) -> None:
+            stop.set()
+
+        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            supervisor.start()
+            while not stop.is_set() and supervisor.fatal is None:
+                supervisor.poll()
+                stop.wait(0.1)
+        finally:
+            supervisor._log("stopping")
+            codes = supervisor.stop(timeout=args.stop_timeout)
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+            summary = ", ".join(f"{n}: {c}" for n, c in codes.items())
+            restarts = sum(supervisor.restarts.values())
+            supervisor._log(f"stopped ({summary}); {restarts} restarts")
+        if supervisor.fatal is not None:
+            raise CliError(supervisor.fatal)
+    return 0

@@ -1,0 +1,464 @@
+"""`ptz-selfcal run IN_BAG --out OUT_BAG`: replay a bag through the real node suite, lose no frame.
+
+The three nodes run as separate processes (the `launch` supervisor) in a private namespace; a player
+node in this process publishes the bag's image topic and encoders over DDS in LOCK-STEP: at most
+`--window` images are in flight, and the next one goes out when the calibrator's CameraInfo for an
+earlier one arrived (matched by header stamp, in order: an image overtaken by a later image's CameraInfo
+got no output and is counted as skipped; one without any answer within `--timeout` counts as lost).
+Encoder messages are sent up to `--encoder-lookahead` seconds (bag time) ahead of the next image so that
+frame_ingest can interpolate without waiting. Every output topic (camera_info, frame calibration,
+homography, keyframes, diagnostics) is recorded to OUT_BAG (mcap) together with the input bag's
+non-image topics (encoders, ground truth) copied unchanged; output messages get the bag time of the
+input image with the same header stamp, so the output bag has one time base.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import struct
+import sys
+import tempfile
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ptz_selfcal import topics
+from ptz_selfcal.tools.bagio import BagError, BagMessage, BagReader, BagWriter, msg_class
+from ptz_selfcal.tools.cli import CliError
+from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, prepare
+
+_IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+OUTPUT_TOPICS = (
+    topics.CAMERA_INFO,
+    topics.FRAME_CALIBRATION,
+    topics.HOMOGRAPHY,
+    topics.KEYFRAMES,
+    topics.DIAGNOSTICS,
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("in_bag", help="input bag directory (images, encoders, optional ground truth)")
+    parser.add_argument(
+        "--out", required=True, metavar="OUT_BAG", help="output bag directory to create (mcap)"
+    )
+    parser.add_argument("--params", metavar="FILE", help="parameter YAML (default: config/ptz_selfcal.yaml)")
+    parser.add_argument("--window", type=int, default=3, help="images in flight at most (lock-step window)")
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=10.0,
+        help="seconds without a CameraInfo after which an image is lost",
+    )
+    parser.add_argument(
+        "--startup-timeout", type=float, default=60.0, help="seconds for the nodes to start and connect"
+    )
+    parser.add_argument(
+        "--encoder-lookahead",
+        type=float,
+        default=1.0,
+        help="seconds (bag time) of non-image messages sent ahead of the next image",
+    )
+    parser.add_argument(
+        "--drain",
+        type=float,
+        default=2.0,
+        help="seconds to wait after the last frame for trailing outputs and final diagnostics",
+    )
+    parser.add_argument("--namespace", help="namespace of the nodes (default: a private one per run)")
+    parser.add_argument("--record-frames", action="store_true", help="also record frame_in (working images)")
+    parser.add_argument("--max-frames", type=int, default=0, help="stop after this many images (0: all)")
+    parser.add_argument("--quiet", action="store_true", help="no node output, no progress lines")
+    parser.add_argument("--calibrator-module", default=NODE_MODULES["calibrator"], help=argparse.SUPPRESS)
+
+
+def header_stamp_ns(raw: bytes | memoryview) -> int | None:
+    """The header stamp of a CDR-serialised message whose first field is std_msgs/Header."""
+    if len(raw) < 12:
+        return None
+    fmt = "<iI" if raw[1] == 1 else ">iI"
+    sec, nanosec = struct.unpack_from(fmt, raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+@dataclass
+class _InFlight:
+    stamp_ns: int
+    bag_time_ns: int
+    sent: float
+    index: int
+
+
+@dataclass
+class RunStats:
+    total: int = 0
+    sent: int = 0
+    calibrated: int = 0
+    skipped: int = 0  # overtaken by a later image's CameraInfo: the pipeline dropped it (bad frame)
+    lost: int = 0  # no CameraInfo within the timeout
+    unmatched: int = 0  # CameraInfo for no image in flight (late, or a stamp the player never sent)
+    recorded: dict[str, int] = field(default_factory=dict)
+    latencies: list[float] = field(default_factory=list)
+    started: float = 0.0
+    finished: float = 0.0
+
+    @property
+    def rate(self) -> float:
+        elapsed = (self.finished or time.monotonic()) - self.started
+        return self.calibrated / elapsed if elapsed > 0 else 0.0
+
+
+def _image_topic(reader: BagReader) -> tuple[str, str, int]:
+    found = {t.name: t for t in reader.topics()}
+    candidates = [
+        found[n] for n in map(topics.bag_topic, (topics.IMAGE_COMPRESSED, topics.IMAGE_RAW)) if n in found
+    ]
+    candidates = [t for t in candidates if t.count > 0] or candidates
+    if not candidates:
+        names = ", ".join(found) or "none"
+        raise CliError(
+            f"{reader.path}: no {topics.bag_topic(topics.IMAGE_RAW)} or "
+            f"{topics.bag_topic(topics.IMAGE_COMPRESSED)} topic (topics: {names})"
+        )
+    best = max(candidates, key=lambda t: t.count)
+    return best.name, best.msgtype, best.count
+
+
+def run(args: argparse.Namespace) -> int:
+    if not 1 <= args.window <= 1000:
+        raise CliError(f"--window must be in [1, 1000], got {args.window}")
+    for name in ("timeout", "startup_timeout"):
+        if not getattr(args, name) > 0:
+            raise CliError(f"--{name.replace('_', '-')} must be > 0")
+    if not 0 <= args.encoder_lookahead <= 3600:
+        raise CliError("--encoder-lookahead must be in [0, 3600] s")
+    with BagReader(args.in_bag) as reader:
+        image_topic, image_type, total = _image_topic(reader)
+        bag_topics = {t.name: t.msgtype for t in reader.topics()}
+    if args.max_frames > 0:
+        total = min(total, args.max_frames)
+    out = Path(args.out)
+    if out.exists():
+        raise CliError(f"{out}: already exists (refusing to overwrite)")
+    namespace = args.namespace or f"/ptz_selfcal_run_{os.getpid()}"
+    with tempfile.TemporaryDirectory(prefix="ptz_selfcal_run_") as tmp:
+        params_file, namespace, _ = prepare(args.params, namespace, [], tmp)
+        assert namespace is not None
+        input_kind = "compressed" if image_topic == topics.bag_topic(topics.IMAGE_COMPRESSED) else "raw"
+        diag_remap = ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
+        specs = [
+            NodeSpec(
+                "frame_ingest",
+                NODE_MODULES["frame_ingest"],
+                [
+                    *diag_remap,
+                    "-p",
+                    "sensor_reliability:=reliable",
+                    "-p",
+                    "queue_policy:=lossless",
+                    "-p",
+                    f"input:={input_kind}",
+                ],
+            ),
+            NodeSpec(
+                "homography_tracker",
+                NODE_MODULES["homography_tracker"],
+                [*diag_remap, "-p", "queue_policy:=lossless"],
+            ),
+            NodeSpec("calibrator", args.calibrator_module, diag_remap),
+        ]
+        supervisor = Supervisor(specs, params_file, namespace, echo=not args.quiet, output=sys.stderr)
+        writer = BagWriter(out)
+        try:
+            stats = _Replay(
+                args, supervisor, writer, namespace, image_topic, image_type, total, bag_topics
+            ).run()
+        finally:
+            writer.close()
+    if not args.quiet:
+        lat = sorted(stats.latencies)
+        p50 = lat[len(lat) // 2] * 1e3 if lat else float("nan")
+        p95 = lat[int(0.95 * (len(lat) - 1))] * 1e3 if lat else float("nan")
+        coverage = 100.0 * stats.calibrated / stats.total if stats.total else 0.0
+        print(
+            f"run: {stats.calibrated}/{stats.total} images got a CameraInfo (coverage {coverage:.1f}%), "
+            f"{stats.skipped} skipped by the nodes, {stats.lost} lost (timeout), "
+            f"{stats.unmatched} unmatched; "
+            f"{stats.rate:.1f} frames/s, latency in lock-step p50 {p50:.1f} ms p95 {p95:.1f} ms; "
+            f"wrote {out}",
+            file=sys.stderr,
+        )
+    return 0
+
+
+class _Replay:
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        supervisor: Supervisor,
+        writer: BagWriter,
+        namespace: str,
+        image_topic: str,
+        image_type: str,
+        total: int,
+        bag_topics: dict[str, str],
+    ) -> None:
+        self.args = args
+        self.supervisor = supervisor
+        self.writer = writer
+        self.namespace = namespace
+        self.image_topic = image_topic
+        self.image_type = image_type
+        self.bag_topics = bag_topics
+        self.stats = RunStats(total=total)
+        self.in_flight: deque[_InFlight] = deque()
+        self.stamp_times: OrderedDict[int, int] = OrderedDict()  # image stamp -> input bag time
+        self.last_bag_time = 0
+        self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
+        self.encoder_topic = topics.bag_topic(topics.JOINT_STATES)
+        self._lost_logged = 0
+        self.diagnostics_seen: dict[str, float] = {}  # node name -> when its last diagnostics arrived
+
+    # ---------------------------------------------------------------- bag side
+    def _messages(self) -> Iterator[BagMessage]:
+        with BagReader(self.args.in_bag) as reader:
+            try:
+                yield from reader.messages()
+            except BagError as exc:
+                print(f"run: warning: {exc}; replaying what could be read", file=sys.stderr)
+
+    def _copy(self, msg: BagMessage) -> None:
+        self.writer.add_topic(msg.topic, msg.msgtype)
+        self.writer.write_raw(msg.topic, msg.timestamp_ns, msg.raw)
+
+    # ---------------------------------------------------------------- ROS side
+    def _on_output(self, topic: str, raw: bytes) -> None:
+        stamp = header_stamp_ns(raw)
+        bag_time = (
+            self.stamp_times.get(stamp, self.last_bag_time) if stamp is not None else self.last_bag_time
+        )
+        name = topics.bag_topic(topic)
+        self.writer.write_raw(name, bag_time, raw)
+        self.stats.recorded[name] = self.stats.recorded.get(name, 0) + 1
+        if topic == topics.CAMERA_INFO and stamp is not None:
+            self._resolve(stamp)
+        elif topic == topics.DIAGNOSTICS:
+            self._note_diagnostics(raw)
+
+    def _note_diagnostics(self, raw: bytes) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.serialization import deserialize_message
+
+        try:
+            array = deserialize_message(raw, DiagnosticArray)
+        except Exception:
+            return
+        now = time.monotonic()
+        for status in array.status:
+            self.diagnostics_seen[status.name.rsplit("/", 1)[-1]] = now
+
+    def _resolve(self, stamp: int) -> None:
+        for k, item in enumerate(self.in_flight):
+            if item.stamp_ns == stamp:
+                for _ in range(k):  # earlier images got no output: the nodes dropped them
+                    self.in_flight.popleft()
+                    self.stats.skipped += 1
+                self.in_flight.popleft()
+                self.stats.calibrated += 1
+                self.stats.latencies.append(time.monotonic() - item.sent)
+                return
+        self.stats.unmatched += 1
+
+    def run(self) -> RunStats:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from ptz_selfcal.nodes.runtime import reliable_qos
+
+        context = rclpy.Context()
+        rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        node = rclpy.create_node("ptz_selfcal_run_player", namespace=self.namespace, context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        interrupted = threading.Event()
+
+        def on_term(signum: int, _frame: Any) -> None:
+            raise KeyboardInterrupt
+
+        previous_term = signal.signal(signal.SIGTERM, on_term)
+        try:
+            image_pub = node.create_publisher(
+                msg_class(self.image_type), self._rel(self.image_topic), reliable_qos()
+            )
+            encoder_pub = None
+            if self.encoder_topic in self.bag_topics:
+                encoder_pub = node.create_publisher(
+                    msg_class(self.bag_topics[self.encoder_topic]), topics.JOINT_STATES, reliable_qos()
+                )
+            subs = []
+            for topic in self.output_topics:
+                name = f"{self.namespace}{topic}" if topic.startswith("/") else topic
+                self.writer.add_topic(topics.bag_topic(topic), topics.TYPES[topic])
+                subs.append(
+                    node.create_subscription(
+                        msg_class(topics.TYPES[topic]),
+                        name,
+                        lambda raw, topic=topic: self._on_output(topic, raw),
+                        reliable_qos(),
+                        raw=True,
+                    )
+                )
+            self.supervisor.start()
+            self._wait_ready(node, executor, image_pub, encoder_pub)
+            self.stats.started = time.monotonic()
+            self._lockstep(executor, image_pub, encoder_pub)
+            self._drain(executor)
+        except KeyboardInterrupt:
+            interrupted.set()
+        finally:
+            self.stats.finished = self.stats.finished or time.monotonic()
+            self.supervisor.stop()
+            signal.signal(signal.SIGTERM, previous_term)
+            executor.shutdown()
+            node.destroy_node()
+            context.try_shutdown()
+        if interrupted.is_set():
+            raise KeyboardInterrupt
+        return self.stats
+
+    def _rel(self, bag_name: str) -> str:
+        return bag_name.lstrip("/")
+
+    def _check_supervisor(self) -> None:
+        self.supervisor.poll()
+        if self.supervisor.fatal:
+            raise CliError(f"the nodes failed: {self.supervisor.fatal}")
+
+    def _wait_ready(self, node: Any, executor: Any, image_pub: Any, encoder_pub: Any) -> None:
+        """Until every node is up and connected (the player sees its subscribers and publishers)."""
+        ns = self.namespace
+        deadline = time.monotonic() + self.args.startup_timeout
+        checks = {
+            "frame_ingest subscribed to images": lambda: image_pub.get_subscription_count() > 0,
+            "frame_ingest subscribed to encoders": lambda: (
+                encoder_pub is None or encoder_pub.get_subscription_count() > 0
+            ),
+            "homography_tracker subscribed to frames": lambda: (
+                node.count_subscribers(f"{ns}/{topics.FRAME_IN}") > 0
+            ),
+            "calibrator subscribed to homographies": lambda: (
+                node.count_subscribers(f"{ns}/{topics.HOMOGRAPHY}") > 1
+            ),
+            "calibrator publishes camera_info": lambda: (
+                node.count_publishers(f"{ns}/{topics.CAMERA_INFO}") > 0
+            ),
+            "frame_ingest publishes frames": lambda: node.count_publishers(f"{ns}/{topics.FRAME_IN}") > 0,
+            "homography_tracker publishes": lambda: node.count_publishers(f"{ns}/{topics.HOMOGRAPHY}") > 0,
+        }
+        while True:
+            self._check_supervisor()
+            missing = [name for name, ok in checks.items() if not ok()]
+            if not missing:
+                break
+            if time.monotonic() > deadline:
+                raise CliError(
+                    f"the nodes did not come up within {self.args.startup_timeout:.0f} s: not yet {missing}"
+                )
+            executor.spin_once(timeout_sec=0.05)
+        # Discovery is symmetric but not simultaneous: give the remote ends a moment to match us.
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+
+    def _lockstep(self, executor: Any, image_pub: Any, encoder_pub: Any) -> None:
+        args = self.args
+        stats = self.stats
+        lookahead = int(args.encoder_lookahead * 1e9)
+        queued: deque[BagMessage] = deque()  # images read ahead (their encoders already sent)
+        messages = self._messages()
+        exhausted = False
+        last_read = 0
+        last_report = time.monotonic()
+        images_read = 0
+        recorded_names = {topics.bag_topic(t) for t in self.output_topics}
+
+        def pump() -> None:
+            nonlocal exhausted, last_read, images_read
+            while not exhausted and (not queued or last_read <= queued[0].timestamp_ns + lookahead):
+                msg = next(messages, None)
+                if msg is None:
+                    exhausted = True
+                    return
+                last_read = msg.timestamp_ns
+                if msg.topic == self.image_topic:
+                    if images_read < stats.total:
+                        queued.append(msg)
+                        images_read += 1
+                    elif args.max_frames:
+                        exhausted = True
+                    continue
+                if msg.topic == self.encoder_topic and encoder_pub is not None:
+                    encoder_pub.publish(msg.raw)
+                if msg.msgtype not in _IMAGE_TYPES and msg.topic not in recorded_names:
+                    self._copy(msg)
+
+        pump()
+        while queued or self.in_flight:
+            while queued and len(self.in_flight) < args.window:
+                msg = queued.popleft()
+                stamp = header_stamp_ns(msg.raw)
+                stamp = stamp if stamp is not None else msg.timestamp_ns
+                self.stamp_times[stamp] = msg.timestamp_ns
+                while len(self.stamp_times) > 4096:
+                    self.stamp_times.popitem(last=False)
+                self.last_bag_time = msg.timestamp_ns
+                self.in_flight.append(_InFlight(stamp, msg.timestamp_ns, time.monotonic(), stats.sent))
+                image_pub.publish(msg.raw)
+                stats.sent += 1
+                pump()
+            executor.spin_once(timeout_sec=0.02)
+            now = time.monotonic()
+            while self.in_flight and now - self.in_flight[0].sent > args.timeout:
+                item = self.in_flight.popleft()
+                stats.lost += 1
+                if self._lost_logged < 5:
+                    self._lost_logged += 1
+                    print(
+                        f"run: image {item.index} (stamp {item.stamp_ns * 1e-9:.6f}) got no CameraInfo "
+                        f"within {args.timeout:.1f} s: counted as lost",
+                        file=sys.stderr,
+                    )
+            if now - last_report > 1.0:
+                last_report = now
+                self._check_supervisor()
+                if not args.quiet:
+                    print(
+                        f"run: {stats.calibrated + stats.skipped + stats.lost}/{stats.total} frames, "
+                        f"{stats.rate:.1f} frames/s",
+                        file=sys.stderr,
+                    )
+        stats.finished = time.monotonic()
+        while not exhausted:  # copy the non-image topics after the last image
+            pump()
+            if queued:
+                queued.clear()
+
+    def _drain(self, executor: Any) -> None:
+        """Collect what the nodes still publish after the last frame: FrameCalibration after CameraInfo,
+        and one more DiagnosticArray from every node that publishes them (final counters in the bag)."""
+        recorded = self.stats.recorded
+        info = topics.bag_topic(topics.CAMERA_INFO)
+        frame = topics.bag_topic(topics.FRAME_CALIBRATION)
+        done = time.monotonic()
+        end = done + self.args.drain
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.02)
+            fresh = all(t > done for t in self.diagnostics_seen.values()) and len(self.diagnostics_seen) >= 3
+            if recorded.get(frame, 0) >= recorded.get(info, 0) and fresh:
+                break
