@@ -170,3 +170,17 @@ def test_varying_pp_bias_grows_with_noise_in_configuration_b() -> None:
         ]
         bias.append(float(np.mean(errs)))
     assert bias[1] > 0.1 and bias[1] > 3.0 * abs(bias[0])
+
+
+def test_pan_only_with_square_pixels_solves_but_is_flagged() -> None:
+    """Known aspect removes the pan-only ambiguity of zero skew alone, but the motion report still says
+    single-axis (section 6.1: nothing beyond the imposed constraints can be checked), so ok is False."""
+    n = 10
+    K = np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(800.0, 1200.0, n)])
+    R = np.array([ptz_rotation(p, np.radians(5.0)) for p in np.radians(np.linspace(0.0, 12.0, n))])
+    result = linear_selfcalibration(homographies(K, R), SIZE, square_pixels=True)
+    assert_intrinsics_close(result.K, K)
+    assert not result.ok
+    assert result.motion is not None and result.motion.status == "degenerate_single_axis"
+    ok = linear_selfcalibration(homographies(*paper_sequence("A")), SIZE)
+    assert ok.ok and ok.motion.status == "ok"

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ptz_selfcal.core.degeneracy import analyse_motion
 from ptz_selfcal.core.intrinsics import (
     SelfCalibrationError,
     SelfCalibrationResult,
@@ -106,6 +107,7 @@ def linear_selfcalibration(
     nominal_focal: float | None = None,
     rank_tolerance: float = 1e-9,
     min_gap: float = 1.5,
+    analyse: bool = True,
 ) -> SelfCalibrationResult:
     """Linear self-calibration (section 3.3.2) from H[j] mapping frame-0 pixels to frame-j pixels.
 
@@ -113,6 +115,8 @@ def linear_selfcalibration(
     known principal point (omega_13 = omega_23 = 0 in coordinates centred on it). Square pixels and a
     known principal point imply zero skew, as in the paper. Raises SelfCalibrationError when the
     constraints are insufficient (rank-deficient system) or omega is not positive definite.
+    With `analyse`, the result carries the geometric section-6 MotionReport (no sigma_f: the
+    linear method has none) and ok is False when the motion is not well posed.
     """
     H = np.asarray(H, dtype=float).reshape(-1, 3, 3)
     if not (zero_skew or square_pixels or known_principal_point is not None):
@@ -138,7 +142,7 @@ def linear_selfcalibration(
     K /= K[:, 2:3, 2:3]
     R = rotations_from_homographies(H, K)
     n = len(H)
-    return SelfCalibrationResult(
+    result = SelfCalibrationResult(
         K=K,
         R=R,
         sigma_f=np.full(n, np.nan),
@@ -150,6 +154,12 @@ def linear_selfcalibration(
         message="",
         info={"singular_values": s.tolist(), "equations": int(A.shape[0])},
     )
+    if analyse:
+        result.motion = analyse_motion(R, K, image_size)
+        if not result.motion.well_posed:
+            result.ok = False
+            result.message = f"motion not well posed: {result.motion.status} ({result.motion.message})"
+    return result
 
 
 def _impose_constraints(K: Array, square_pixels: bool, known_pp: bool) -> Array:

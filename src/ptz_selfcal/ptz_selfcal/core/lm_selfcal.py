@@ -127,7 +127,9 @@ def _initial_intrinsics(H: Array, image_size: tuple[int, int], model: Intrinsics
     if model.principal_point is ParamMode.KNOWN:
         known_pp = model.principal_point_value or image_centre(image_size)
     try:
-        return linear_selfcalibration(H, image_size, square_pixels=square, known_principal_point=known_pp).K
+        return linear_selfcalibration(
+            H, image_size, square_pixels=square, known_principal_point=known_pp, analyse=False
+        ).K
     except SelfCalibrationError:
         # Fallback: f_0 = image width, f_j from the area scale of H_j (zoom ratio), pp at the centre.
         N = normalising_transform(image_centre(image_size), float(image_size[0]))
