@@ -91,26 +91,28 @@ def test_analytic_jacobians_match_finite_differences() -> None:
     state = bundle._State(values, R, bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays))
     layout = bundle._layout(model, 30, use_prior=False)
     _, Y = bundle._residuals(state, obs)
-    J_cam, J_ray = bundle._jacobians(state, obs, Y, layout)
+    J_cam, J_ray = bundle._jacobians(state, obs, Y, layout)  # (2, L, N) and (2, 2, N)
     eps = 1e-6
-    for p in (0, 7, 31, 60, 95, layout.n_params - 1):  # intrinsics (f, aspect, skew, pp) and rotations
+
+    def central_difference(d_cam, d_ray):
+        r_p, _ = bundle._residuals(bundle._apply_step(state, d_cam, d_ray, layout, 1.0), obs)
+        r_m, _ = bundle._residuals(bundle._apply_step(state, -d_cam, -d_ray, layout, 1.0), obs)
+        return (r_p - r_m) / (2 * eps)
+
+    # Intrinsics (f, aspect, skew, pp) and rotations of several frames.
+    for p in (0, 7, 31, 60, 95, layout.n_params - 1):
         d = np.zeros(layout.n_params)
         d[p] = eps
-        r_p, _ = bundle._residuals(bundle._apply_step(state, d, np.zeros((n_rays, 2)), layout, 1.0), obs)
-        r_m, _ = bundle._residuals(bundle._apply_step(state, -d, np.zeros((n_rays, 2)), layout, 1.0), obs)
-        numeric = (r_p - r_m) / (2 * eps)
-        hit = layout.local[obs.frame_idx] == p
-        analytic = np.einsum("nal,nl->na", J_cam, hit.astype(float))
+        numeric = central_difference(d, np.zeros((n_rays, 2)))
+        hit = (layout.local[obs.frame_idx] == p).T.astype(float)  # (L, N)
+        analytic = np.einsum("aln,ln->an", J_cam, hit)
         np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
     for ray in (0, n_rays // 2):
         for c in range(2):
             d_ray = np.zeros((n_rays, 2))
             d_ray[ray, c] = eps
-            zero = np.zeros(layout.n_params)
-            r_p, _ = bundle._residuals(bundle._apply_step(state, zero, d_ray, layout, 1.0), obs)
-            r_m, _ = bundle._residuals(bundle._apply_step(state, zero, -d_ray, layout, 1.0), obs)
-            numeric = (r_p - r_m) / (2 * eps)
-            analytic = J_ray[:, :, c] * (obs.ray_idx == ray)[:, None]
+            numeric = central_difference(np.zeros(layout.n_params), d_ray)
+            analytic = J_ray[:, c] * (obs.ray_idx == ray)
             np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
 
 

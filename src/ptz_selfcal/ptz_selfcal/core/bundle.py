@@ -125,17 +125,6 @@ def _tangent_bases(X: Array) -> Array:
     return np.stack([b1, b2], axis=2)
 
 
-def _inverse_2x2(M: Array) -> Array:
-    """(m, 2, 2) inverses of symmetric 2x2 blocks."""
-    a, b, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 1]
-    det = a * d - b * b
-    inv = np.empty_like(M)
-    inv[:, 0, 0] = d / det
-    inv[:, 1, 1] = a / det
-    inv[:, 0, 1] = inv[:, 1, 0] = -b / det
-    return inv
-
-
 def initial_rays(obs: BundleObservations, K: Array, R: Array, n_rays: int) -> Array:
     """Unit rays by back-projection X = R_i^T K_i^-1 x through each frame, averaged (section 5.1)."""
     Kinv = np.linalg.inv(K)
@@ -189,41 +178,65 @@ class _State:
     X: Array  # (m, 3) unit rays
 
 
+# Per-observation arrays are component-major, (components, N) with the N observations sorted by frame,
+# so that the hot loops are contiguous vector operations and one small GEMM per frame.
+
+
+def _per_frame(R: Array, vectors: Array, bounds: IntArray) -> Array:
+    """R_i applied to (3, ..., N) vectors, frame by frame (one GEMM per frame)."""
+    out = np.empty_like(vectors)
+    for i, (lo, hi) in enumerate(pairwise(bounds)):
+        out[..., lo:hi] = (R[i] @ vectors[..., lo:hi].reshape(3, -1)).reshape(out[..., lo:hi].shape)
+    return out
+
+
 def _residuals(state: _State, obs: _PreparedObservations) -> tuple[Array, Array]:
-    """Reprojection residuals (N, 2) of eq. 26 and the camera-frame rays Y = R_i X_j (N, 3)."""
-    Y = np.einsum("nij,nj->ni", state.R[obs.frame_idx], state.X[obs.ray_idx])
-    v = state.values[obs.frame_idx]
-    a, b = Y[:, 0] / Y[:, 2], Y[:, 1] / Y[:, 2]
-    u = v[:, ASPECT] * v[:, F] * a + v[:, SKEW] * v[:, F] * b + v[:, CX]
-    w = v[:, F] * b + v[:, CY]
-    return np.column_stack([u, w]) - obs.xy, Y
+    """Reprojection residuals (2, N) of eq. 26 and the camera-frame rays Y = R_i X_j (3, N)."""
+    Y = _per_frame(state.R, state.X.T[:, obs.ray_idx], obs.bounds)
+    f, gamma, s, cx, cy = state.values.T[:, obs.frame_idx]
+    a, b = Y[0] / Y[2], Y[1] / Y[2]
+    r = np.empty((2, len(a)))
+    r[0] = gamma * f * a + s * f * b + cx - obs.xy_t[0]
+    r[1] = f * b + cy - obs.xy_t[1]
+    return r, Y
 
 
 def _jacobians(state: _State, obs: _PreparedObservations, Y: Array, layout: _Layout) -> tuple[Array, Array]:
-    """Analytic Jacobians of the residuals: camera part (N, 2, L) and ray part (N, 2, 2)."""
-    v = state.values[obs.frame_idx]
-    f, gamma, s = v[:, F], v[:, ASPECT], v[:, SKEW]
-    inv_z = 1.0 / Y[:, 2]
-    a, b = Y[:, 0] * inv_z, Y[:, 1] * inv_z
-    # d(u, v)/dY of the pinhole projection with K of eq. 1.
-    A = np.zeros((len(Y), 2, 3))
-    A[:, 0, 0] = gamma * f * inv_z
-    A[:, 0, 1] = s * f * inv_z
-    A[:, 0, 2] = -(gamma * f * a + s * f * b) * inv_z
-    A[:, 1, 1] = f * inv_z
-    A[:, 1, 2] = -f * b * inv_z
-    # Left update R <- exp([w]_x) R: dY/dw = -[Y]_x. Ray update X <- normalise(X + B d): dY/dd = R B.
-    J_rot = np.cross(Y[:, None, :], A)
-    B = _tangent_bases(state.X)
-    J_ray = A @ (state.R[obs.frame_idx] @ B[obs.ray_idx])
-    J_intr = np.zeros((len(Y), 2, 5))
-    J_intr[:, 0, F] = gamma * a + s * b
-    J_intr[:, 1, F] = b
-    J_intr[:, 0, ASPECT] = f * a
-    J_intr[:, 0, SKEW] = f * b
-    J_intr[:, 0, CX] = 1.0
-    J_intr[:, 1, CY] = 1.0
-    J_cam = np.concatenate([J_rot, J_intr[:, :, layout.free_columns]], axis=2)
+    """Analytic Jacobians of the residuals: camera part (2, L, N) and ray part (2, 2, N)."""
+    f, gamma, s = state.values.T[: SKEW + 1, obs.frame_idx]
+    Y0, Y1, Y2 = Y
+    inv_z = 1.0 / Y2
+    a, b = Y0 * inv_z, Y1 * inv_z
+    # d(u, v)/dY of the pinhole projection with K of eq. 1 (row 1 has no Y0 term).
+    A00, A01 = gamma * f * inv_z, s * f * inv_z
+    A02 = -(A00 * a + A01 * b)
+    A11 = f * inv_z
+    A12 = -A11 * b
+    J_cam = np.zeros((2, layout.local.shape[1], len(a)))
+    # Left update R <- exp([w]_x) R: dY/dw = -[Y]_x, so each row of dr/dw is Y x (row of A).
+    J_cam[0, 0] = Y1 * A02 - Y2 * A01
+    J_cam[0, 1] = Y2 * A00 - Y0 * A02
+    J_cam[0, 2] = Y0 * A01 - Y1 * A00
+    J_cam[1, 0] = Y1 * A12 - Y2 * A11
+    J_cam[1, 1] = -Y0 * A12
+    J_cam[1, 2] = Y0 * A11
+    for k, column in enumerate(layout.free_columns, start=3):
+        if column == F:
+            J_cam[0, k] = gamma * a + s * b
+            J_cam[1, k] = b
+        elif column == ASPECT:
+            J_cam[0, k] = f * a
+        elif column == SKEW:
+            J_cam[0, k] = f * b
+        elif column == CX:
+            J_cam[0, k] = 1.0
+        else:
+            J_cam[1, k] = 1.0
+    # Ray update X <- normalise(X + B d): dY/dd = R_i B_j (tangent basis B of the ray X_j).
+    G = _per_frame(state.R, _tangent_bases(state.X).transpose(1, 2, 0)[:, :, obs.ray_idx], obs.bounds)
+    J_ray = np.empty((2, 2, len(a)))
+    J_ray[0] = A00 * G[0] + A01 * G[1] + A02 * G[2]
+    J_ray[1] = A11 * G[1] + A12 * G[2]
     return J_cam, J_ray
 
 
@@ -248,7 +261,8 @@ def _prior_terms(
 
 @dataclass
 class _Normal:
-    """The normal equations in block form: U (P+1, P+1), W (P+1, m, 2), V (m, 2, 2), gradients."""
+    """Normal equations in block form: U (P, P), W (P, 2, m), V (3, m) as (v00, v01, v11) per ray,
+    gradients g_cam (P,) and g_ray (2, m)."""
 
     U: Array
     W: Array
@@ -257,58 +271,82 @@ class _Normal:
     g_ray: Array
 
 
+def _coupling_index(obs: _PreparedObservations, layout: _Layout, n_rays: int) -> IntArray:
+    """(L, 2, N) flat index of each observation's entries in W (P+1, 2, m); fixed for a solve."""
+    rows = layout.local[obs.frame_idx].T[:, None, :] * 2 + np.arange(2)[None, :, None]
+    return rows * n_rays + obs.ray_idx[None, None, :]
+
+
 def _normal_equations(
     r: Array,
     J_cam: Array,
     J_ray: Array,
-    obs: BundleObservations,
+    obs: _PreparedObservations,
     layout: _Layout,
     n_rays: int,
     prior_grad: tuple[Array, Array],
+    w_index: IntArray,
 ) -> _Normal:
     L = layout.local.shape[1]
     P1 = layout.n_params + 1
-    bounds = np.append(obs.frame_starts, len(r))
-    # Camera blocks: every observation of frame i shares the frame's local index list (one GEMM each).
-    U_frame = np.empty((len(bounds) - 1, L, L))
-    g_frame = np.empty((len(bounds) - 1, L))
-    for i, (lo, hi) in enumerate(pairwise(bounds)):
-        J_i = J_cam[lo:hi].reshape(-1, L)
-        U_frame[i] = J_i.T @ J_i
-        g_frame[i] = J_i.T @ r[lo:hi].ravel()
+    # Camera blocks: every observation of frame i shares the frame's local index list (GEMMs per frame).
+    U_frame = np.empty((len(obs.bounds) - 1, L, L))
+    g_frame = np.empty((len(obs.bounds) - 1, L))
+    for i, (lo, hi) in enumerate(pairwise(obs.bounds)):
+        J0, J1 = J_cam[0, :, lo:hi], J_cam[1, :, lo:hi]
+        U_frame[i] = J0 @ J0.T + J1 @ J1.T
+        g_frame[i] = J0 @ r[0, lo:hi] + J1 @ r[1, lo:hi]
     loc = layout.local
     rows = np.repeat(loc[:, :, None], L, axis=2)
     cols = np.repeat(loc[:, None, :], L, axis=1)
     U = np.bincount((rows * P1 + cols).ravel(), weights=U_frame.ravel(), minlength=P1 * P1).reshape(P1, P1)
     g_cam = np.bincount(loc.ravel(), weights=g_frame.ravel(), minlength=P1)
-    # Ray blocks (2x2 each) and the camera-ray coupling W (dense over rays, eliminated later).
+    # Ray blocks (2x2 each, stored as v00, v01, v11) and the camera-ray coupling W (P+1, 2, m).
     ray = obs.ray_idx
-    v00 = np.bincount(ray, weights=(J_ray[:, :, 0] ** 2).sum(axis=1), minlength=n_rays)
-    v01 = np.bincount(ray, weights=(J_ray[:, :, 0] * J_ray[:, :, 1]).sum(axis=1), minlength=n_rays)
-    v11 = np.bincount(ray, weights=(J_ray[:, :, 1] ** 2).sum(axis=1), minlength=n_rays)
-    V = np.stack([v00, v01, v01, v11], axis=1).reshape(n_rays, 2, 2)
-    g_ray = np.stack(
-        [np.bincount(ray, weights=(J_ray[:, :, c] * r).sum(axis=1), minlength=n_rays) for c in range(2)],
-        axis=1,
+    (t00, t01), (t10, t11) = J_ray  # J_ray[row, tangent direction]
+    V = np.stack(
+        [
+            np.bincount(ray, weights=t00 * t00 + t10 * t10, minlength=n_rays),
+            np.bincount(ray, weights=t00 * t01 + t10 * t11, minlength=n_rays),
+            np.bincount(ray, weights=t01 * t01 + t11 * t11, minlength=n_rays),
+        ]
     )
-    W_obs = J_cam[:, 0, :, None] * J_ray[:, 0, None, :] + J_cam[:, 1, :, None] * J_ray[:, 1, None, :]
-    w_index = (loc[obs.frame_idx][:, :, None] * n_rays + ray[:, None, None]) * 2 + np.arange(2)
-    W = np.bincount(w_index.ravel(), weights=W_obs.ravel(), minlength=P1 * n_rays * 2).reshape(P1, n_rays, 2)
+    g_ray = np.stack(
+        [
+            np.bincount(ray, weights=t00 * r[0] + t10 * r[1], minlength=n_rays),
+            np.bincount(ray, weights=t01 * r[0] + t11 * r[1], minlength=n_rays),
+        ]
+    )
+    W_obs = J_cam[0][:, None, :] * J_ray[0][None] + J_cam[1][:, None, :] * J_ray[1][None]
+    W = np.bincount(w_index.ravel(), weights=W_obs.ravel(), minlength=P1 * 2 * n_rays).reshape(P1, 2, n_rays)
     # MAP prior of eq. 27: diagonal Gauss-Newton terms on the principal point unknowns.
     prior_r, prior_J = prior_grad
     if len(prior_r):
         U[layout.prior_index, layout.prior_index] += prior_J**2
         g_cam[layout.prior_index] += prior_J * prior_r
-    U[-1, :] = 0.0
-    U[:, -1] = 0.0
-    g_cam[-1] = 0.0
-    W[-1] = 0.0
-    return _Normal(U, W, V, g_cam, g_ray)
+    return _Normal(U[:-1, :-1], W[:-1], V, g_cam[:-1], g_ray)
 
 
-def _times_blocks(W: Array, V: Array) -> Array:
-    """(P, m, 2) W times the (m, 2, 2) blocks V, ray by ray."""
-    return W[:, :, :1] * V[None, :, 0, :] + W[:, :, 1:] * V[None, :, 1, :]
+def _inverse_blocks(V: Array) -> Array:
+    """Inverses of the symmetric 2x2 ray blocks, (3, m) components (v00, v01, v11) in and out."""
+    det = V[0] * V[2] - V[1] * V[1]
+    return np.stack([V[2], -V[1], V[0]]) / det
+
+
+def _times_blocks(W: Array, V_inv: Array) -> Array:
+    """(P, 2, m) W times the symmetric 2x2 blocks of every ray."""
+    out = np.empty_like(W)
+    out[:, 0] = W[:, 0] * V_inv[0] + W[:, 1] * V_inv[1]
+    out[:, 1] = W[:, 0] * V_inv[1] + W[:, 1] * V_inv[2]
+    return out
+
+
+def _reduced_system(ne: _Normal, V_inv: Array) -> tuple[Array, Array]:
+    """Schur complement S = U - W V^-1 W^T and the product W V^-1 (P, 2m)."""
+    P = len(ne.U)
+    W = ne.W.reshape(P, -1)
+    WV = _times_blocks(ne.W, V_inv).reshape(P, -1)
+    return ne.U - WV @ W.T, WV
 
 
 def _solve_reduced(S: Array, rhs: Array) -> Array:
@@ -325,27 +363,27 @@ def _solve_reduced(S: Array, rhs: Array) -> Array:
 
 
 def _schur_step(ne: _Normal, lam: float, D_cam: Array, D_ray: Array) -> tuple[Array, Array]:
-    """Damped Gauss-Newton step (U + lam D) dc + W dp = -g_c, W^T dc + (V + lam D) dp = -g_p."""
-    P = len(ne.U) - 1
-    U = ne.U[:P, :P] + lam * np.diag(D_cam)
-    V = ne.V + lam * D_ray[:, :, None] * np.eye(2)
-    V_inv = _inverse_2x2(V)
-    W = ne.W[:P].reshape(P, -1)
-    WV = _times_blocks(ne.W[:P], V_inv).reshape(P, -1)
-    S = U - WV @ W.T
-    rhs = -ne.g_cam[:P] + WV @ ne.g_ray.ravel()
+    """Damped Gauss-Newton step (U + lam D) dc + W dp = -g_c, W^T dc + (V + lam D) dp = -g_p.
+
+    Returns d_cam (P,) and d_ray (m, 2).
+    """
+    V = ne.V.copy()
+    V[0] += lam * D_ray[0]
+    V[2] += lam * D_ray[1]
+    V_inv = _inverse_blocks(V)
+    S, WV = _reduced_system(ne, V_inv)
+    S[np.diag_indices_from(S)] += lam * D_cam
+    rhs = -ne.g_cam + WV @ ne.g_ray.ravel()
     d_cam = _solve_reduced(S, rhs)
-    d_ray = -np.einsum("mjk,mk->mj", V_inv, ne.g_ray + (W.T @ d_cam).reshape(-1, 2))
+    q = ne.g_ray + (ne.W.reshape(len(d_cam), -1).T @ d_cam).reshape(2, -1)
+    d_ray = -np.stack([V_inv[0] * q[0] + V_inv[1] * q[1], V_inv[1] * q[0] + V_inv[2] * q[1]], axis=1)
     return d_cam, d_ray
 
 
 def _reduced_covariance(ne: _Normal) -> Array:
     """Inverse of the undamped reduced camera system (rays marginalised), unit residual variance."""
-    P = len(ne.U) - 1
-    V_inv = _inverse_2x2(ne.V)
-    W = ne.W[:P].reshape(P, -1)
-    WV = _times_blocks(ne.W[:P], V_inv).reshape(P, -1)
-    S = ne.U[:P, :P] - WV @ W.T
+    S, _ = _reduced_system(ne, _inverse_blocks(ne.V))
+    P = len(S)
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
     Ss = S / d[:, None] / d[None, :]
     try:
@@ -368,7 +406,7 @@ def _apply_step(state: _State, d_cam: Array, d_ray: Array, layout: _Layout, f_mi
     omega = d[layout.local[:, :3]]
     R = _rodrigues(omega) @ state.R
     B = _tangent_bases(state.X)
-    X = state.X + np.einsum("mjk,mk->mj", B, d_ray)
+    X = state.X + B[:, :, 0] * d_ray[:, :1] + B[:, :, 1] * d_ray[:, 1:]
     X /= np.linalg.norm(X, axis=1, keepdims=True)
     return _State(values, R, X)
 
@@ -386,6 +424,12 @@ class _PreparedObservations:
     ray_idx: IntArray
     xy: Array
     frame_starts: IntArray
+    xy_t: Array  # (2, N) the same pixels, component-major
+
+    @property
+    def bounds(self) -> IntArray:
+        """(n + 1,) row ranges of the frames: frame i is rows bounds[i]:bounds[i + 1]."""
+        return np.append(self.frame_starts, len(self.frame_idx))
 
 
 def _prepare(observations: ObservationsLike, n_frames: int) -> tuple[_PreparedObservations, IntArray]:
@@ -404,7 +448,9 @@ def _prepare(observations: ObservationsLike, n_frames: int) -> tuple[_PreparedOb
             f"frames {np.flatnonzero(seen == 0).tolist()} share no ray with another frame"
         )
     starts = np.concatenate([[0], np.cumsum(seen)[:-1]]).astype(np.intp)
-    return _PreparedObservations(frame_idx, compact[order], obs.xy[keep][order], starts), kept_ids
+    xy = obs.xy[keep][order]
+    prepared = _PreparedObservations(frame_idx, compact[order], xy, starts, np.ascontiguousarray(xy.T))
+    return prepared, kept_ids
 
 
 def bundle_adjust(
@@ -501,16 +547,16 @@ def _levenberg_marquardt(
     prior_terms = _prior_terms(state, layout, prior)
     cost = _cost(r, prior_terms[0])
     initial_cost = cost
-    exact_cost = 1e-20 * len(r)  # rms below 1e-10 px: nothing left to fit
-    lam, nu = 1e-3, 2.0
+    exact_cost = 1e-20 * r.shape[1]  # rms below 1e-10 px: nothing left to fit
+    w_index = _coupling_index(obs, layout, n_rays)
+    lam, nu = 1e-6, 2.0
     iterations, message = 0, "maximum iterations reached"
     ne = None
-    for iterations in range(1, max_iterations + 1):  # noqa: B007
+    for iterations in range(1, max_iterations + 1):
         J_cam, J_ray = _jacobians(state, obs, Y, layout)
-        ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms)
-        P = layout.n_params
-        D_cam = np.maximum(np.diag(ne.U)[:P], 1e-12 * max(np.diag(ne.U).max(), 1e-300))
-        D_ray = np.maximum(ne.V[:, [0, 1], [0, 1]], 1e-12)
+        ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, w_index)
+        D_cam = np.maximum(np.diag(ne.U), 1e-12 * max(np.diag(ne.U).max(), 1e-300))
+        D_ray = np.maximum(ne.V[[0, 2]], 1e-12)  # (2, m) diagonal of the ray blocks
         accepted = False
         while not accepted:
             d_cam, d_ray = _schur_step(ne, lam, D_cam, D_ray)
@@ -520,15 +566,15 @@ def _levenberg_marquardt(
             cost_new = _cost(r_new, prior_new[0])
             # Predicted decrease of the quadratic model (cost = |r|^2).
             predicted = float(
-                d_cam @ (lam * D_cam * d_cam - ne.g_cam[:P])
-                + np.sum(d_ray * (lam * D_ray * d_ray - ne.g_ray))
+                d_cam @ (lam * D_cam * d_cam - ne.g_cam)
+                + np.sum(d_ray.T * (lam * D_ray * d_ray.T - ne.g_ray))
             )
             rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
             if predicted <= 0.1 * tolerance * cost:  # the model promises nothing more: converged
                 break
             if np.isfinite(cost_new) and rho > 0:
                 accepted = True
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                lam *= max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
             else:
                 lam *= nu
@@ -539,6 +585,7 @@ def _levenberg_marquardt(
             message = "converged" if cost <= exact_cost or lam <= 1e16 else "no further decrease"
             break
         decrease = cost - cost_new
+        logger.debug("BA iteration %d: cost %.12g -> %.12g, lambda %.3g", iterations, cost, cost_new, lam)
         state, r, Y, prior_terms, cost = candidate, r_new, Y_new, prior_new, cost_new
         if decrease <= tolerance * cost or cost <= exact_cost:
             message = "converged"
@@ -546,8 +593,8 @@ def _levenberg_marquardt(
 
     # Uncertainty from the undamped reduced system at the solution (rays marginalised).
     J_cam, J_ray = _jacobians(state, obs, Y, layout)
-    ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms)
-    n_obs = len(r)
+    ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, w_index)
+    n_obs = r.shape[1]
     dof = max(2 * n_obs + len(prior_terms[0]) - layout.n_params - 2 * n_rays, 1)
     variance = cost / dof
     cov = _reduced_covariance(ne) * variance
@@ -558,7 +605,7 @@ def _levenberg_marquardt(
 
     rays = np.full((int(ray_ids.max()) + 1, 3), np.nan)
     rays[ray_ids] = state.X
-    residual = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    residual = float(np.sqrt(np.mean(r[0] ** 2 + r[1] ** 2)))
     ok = bool(np.isfinite(cost) and (state.values[:, F] > f_min).all())
     if not ok:
         message = "focal length at its lower bound" if np.isfinite(cost) else "non-finite cost"
