@@ -1,0 +1,906 @@
+"""The calibrator's per-frame logic and what it persists (pure: numpy + the calibration core, no rclpy).
+
+`CalibratorSession` is everything the calibrator node does between "a HomographyStamped arrived" and
+"publish this K". It wraps `core.incremental.IncrementalCalibrator` (initialisation once the motion is
+well posed, section 6; bounded keyframe set; O(1) per-frame K by DIAC transfer) and plugs into its
+solver seam `KeyframeBundleSolver`: LM on eq. 22 (section 3.3.1, initialised by the linear method of
+3.3.2 inside lm_selfcalibration) refined by the keyframe bundle adjustment with the MAP
+principal-point prior (eq. 27, section 5.2) on the tracker's keyframe point matches.
+
+Threading model (the node runs `step` in a worker thread, never in the frame callback):
+- `process(frame)` (frame thread) never solves: it queues a new keyframe and computes the frame's K
+  from the latest immutable snapshot of the calibration (a read-only IncrementalCalibrator rebuilt
+  with `from_dict` after every solve), so a frame never waits for a re-optimisation.
+- `step(max_seconds)` (worker thread, or called inline by benchmarks/tests) adds the queued keyframes
+  and matches to the calibrator, re-optimises over the keyframes, learns the zoom model and publishes
+  a new snapshot.
+
+Statuses: INITIALISING (no calibration yet; K from the zoom model if one was loaded, else nominal
+parameters transferred through the frame's homography), DEGENERATE_MOTION (section 6: pan-only,
+tilt-only, tiny rotations at long focal length), CALIBRATING / CONVERGED (the calibrator's state),
+PREDICTED_FROM_ZOOM (no usable homography, K from the zoom model), TRACKING_LOST (no usable
+homography and no zoom model: the last good K).
+
+State files (in the node's `state_dir`) are only ever replaced atomically: temporary file in the same
+directory, fsync, os.replace, directory fsync. A corrupt or unreadable file is reported and ignored
+(fresh start), never a crash.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import tempfile
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
+from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
+from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator, Keyframe
+from ptz_selfcal.core.intrinsics import (
+    IntrinsicsModel,
+    ParamMode,
+    SelfCalibrationError,
+    SelfCalibrationResult,
+    image_centre,
+)
+from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+from ptz_selfcal.core.zoom_model import ZoomModel, ZoomModelError
+
+Array = NDArray[np.float64]
+
+_LOG = logging.getLogger(__name__)
+
+STATE_VERSION = 1
+STATE_FILE = "calibration_state.yaml"
+ZOOM_MODEL_FILE = "zoom_model.yaml"
+
+# FrameCalibration status names (the message constants have the same names).
+INITIALISING = "INITIALISING"
+CALIBRATING = "CALIBRATING"
+CONVERGED = "CONVERGED"
+DEGENERATE_MOTION = "DEGENERATE_MOTION"
+TRACKING_LOST = "TRACKING_LOST"
+PREDICTED_FROM_ZOOM = "PREDICTED_FROM_ZOOM"
+STATUSES = (INITIALISING, CALIBRATING, CONVERGED, DEGENERATE_MOTION, TRACKING_LOST, PREDICTED_FROM_ZOOM)
+
+# HomographyStamped.state names that carry a usable homography.
+TRACKING_STATES_WITH_H = ("TRACKING", "NEW_KEYFRAME", "RELOCALISED")
+
+
+# --------------------------------------------------------------------------------------------------
+# Atomic files
+# --------------------------------------------------------------------------------------------------
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
+    """Replace `path` with `text` atomically: temp file in the same directory, fsync, os.replace."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # make the rename itself durable
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+
+
+class StateFileError(Exception):
+    """A state file that exists but cannot be used (corrupt, wrong version, wrong camera)."""
+
+
+def load_yaml_file(path: str | os.PathLike[str]) -> dict | None:
+    """The mapping in a YAML file; None when the file does not exist; StateFileError when unusable."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        first = (str(exc).splitlines() or [""])[0]
+        raise StateFileError(f"{path}: unreadable ({type(exc).__name__}: {first})") from exc
+    if not isinstance(data, dict):
+        raise StateFileError(f"{path}: not a YAML mapping")
+    return data
+
+
+# --------------------------------------------------------------------------------------------------
+# Inputs and outputs of one frame
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class FrameInput:
+    """What the calibrator knows about one image (from its HomographyStamped)."""
+
+    stamp: float  # seconds
+    H: Array | None  # reference -> this frame, full-resolution pixels (None: no homography)
+    tracking_state: str  # HomographyStamped state name
+    width: int
+    height: int
+    keyframe_id: int = 0
+    reference_id: str = ""
+    zoom: float = math.nan  # zoom encoder (NaN when invalid)
+
+
+@dataclass
+class FrameOutput:
+    """The calibration of one image: what goes into its CameraInfo and FrameCalibration."""
+
+    status: str
+    K: Array
+    D: Array  # plumb_bob [k1, k2, 0, 0, 0]
+    R: Array | None  # orientation relative to the calibration's reference frame (None: unknown)
+    sigma_f: float
+    sigma_cx: float
+    sigma_cy: float
+    residual: float
+    keyframe_id: int
+    keyframe_count: int
+    source: str  # where K came from: calibration / prior / zoom_model / last_good / nominal
+    message: str = ""
+    time_s: float = 0.0
+
+
+@dataclass
+class SessionConfig:
+    nominal_focal_px: float = 0.0  # > 0 overrides nominal_hfov_deg
+    nominal_hfov_deg: float = 60.0
+    min_rotation_deg: float = 2.0  # keyframe rotation needed before the first solve (section 6)
+    min_keyframes: int = 4
+    max_keyframes: int = 30
+    bundle_adjustment: bool = True
+    ba_principal_point: str = "constant"  # "constant" or "varying" (per keyframe), both with the prior
+    pp_prior_sigma_px: float = 20.0  # MAP principal point prior (eq. 27), 1-sigma each axis
+    ba_noise_sigma_px: float = 1.0  # image noise that weighs the prior (eq. 27)
+    ba_max_points_per_pair: int = 50
+    ba_max_iterations: int = 30
+    max_match_pairs: int = 256
+    max_focal_ratio: float = 20.0  # homographies scaling more than this are tracker failures
+    prior_sigma_f_fraction: float = 0.3  # 1-sigma reported for f from nominal parameters
+    zoom_model_min_keyframes: int = 4  # converged keyframes before the zoom model is used
+
+    def nominal_focal(self, width: int) -> float:
+        if self.nominal_focal_px > 0.0:
+            return float(self.nominal_focal_px)
+        return 0.5 * width / math.tan(math.radians(0.5 * self.nominal_hfov_deg))
+
+
+# --------------------------------------------------------------------------------------------------
+# The solver plugged into IncrementalCalibrator's seam: LM (eq. 22), then keyframe BA (eq. 27)
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class KeyframeMatchSet:
+    """Inlier point pairs between two keyframes (full-resolution pixels)."""
+
+    keyframe_id: int
+    other_keyframe_id: int
+    points: Array  # (N, 2) in keyframe_id
+    other_points: Array  # (N, 2) in other_keyframe_id
+
+
+class KeyframeBundleSolver:
+    """SolverFn for IncrementalCalibrator: LM on eq. 22, refined by MAP bundle adjustment (eq. 27).
+
+    Frame 0 of the solve is the calibration reference (the tracker's reference keyframe), frames
+    1.. the calibrator's keyframes. Observations are the tracker's keyframe matches between frames of
+    the solve; a frame without any match gets virtual correspondences from its homography to the
+    reference (grid points visible in both) so that it stays in the adjustment. When the adjustment
+    fails or is not better posed, the LM result is returned.
+    """
+
+    def __init__(self, config: SessionConfig, matches: OrderedDict[tuple[int, int], KeyframeMatchSet]):
+        self.config = config
+        self.matches = matches
+        self.reference_keyframe_id: int | None = None
+        self.last_method = ""
+        self.last_message = ""
+
+    def __call__(
+        self,
+        H: Array,
+        image_size: tuple[int, int],
+        model: IntrinsicsModel,
+        K_init: Array | None,
+        keyframes: list[Keyframe],
+        max_nfev: int,
+    ) -> SelfCalibrationResult:
+        # LM on <= max_keyframes + 1 homographies takes milliseconds: the calibrator's time-derived
+        # evaluation budget (which also counts the adjustment) would stop it short of convergence
+        lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max(int(max_nfev), 100))
+        self.last_method, self.last_message = lm.method, lm.message
+        if not lm.ok or not self.config.bundle_adjustment:
+            return lm
+        try:
+            ba = self._bundle(H, image_size, lm, keyframes)
+        except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
+            self.last_message = f"bundle adjustment skipped: {exc}"
+            return lm
+        if ba is None or not ba.ok or not np.all(np.isfinite(ba.K)):
+            self.last_message = "bundle adjustment failed: " + (
+                "no observations" if ba is None else ba.message
+            )
+            return lm
+        self.last_method = ba.method
+        ba.method = f"{lm.method}+{ba.method}"
+        return ba
+
+    def _bundle(
+        self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
+    ) -> SelfCalibrationResult | None:
+        index = {kf.keyframe_id: i + 1 for i, kf in enumerate(keyframes)}
+        if self.reference_keyframe_id is not None:
+            index[self.reference_keyframe_id] = 0
+        rng = np.random.default_rng(0)
+        limit = self.config.ba_max_points_per_pair
+        pairs: list[tuple[int, int, Array, Array]] = []
+        for m in self.matches.values():
+            a, b = index.get(m.keyframe_id), index.get(m.other_keyframe_id)
+            if a is None or b is None or a == b or len(m.points) < 8:
+                continue
+            pa, pb = m.points, m.other_points
+            if len(pa) > limit:
+                keep = np.sort(rng.choice(len(pa), limit, replace=False))
+                pa, pb = pa[keep], pb[keep]
+            pairs.append((a, b, pa, pb))
+        if not pairs:
+            return None
+        seen = np.zeros(len(H), bool)
+        for a, b, _, _ in pairs:
+            seen[a] = seen[b] = True
+        width, height = image_size
+        grid = pixel_grid(width, height, 8)
+        for j in np.flatnonzero(~seen):
+            # virtual correspondences reference <-> frame j from H_j (frame 0 <-> j when j > 0)
+            if j == 0:
+                k = int(np.flatnonzero(seen)[0])
+                Hk = H[k]
+                src = grid
+                dst = apply_homography(Hk, src)
+                pairs.append((0, k, *_visible(src, dst, width, height)))
+            else:
+                dst = apply_homography(H[j], grid)
+                pairs.append((0, j, *_visible(grid, dst, width, height)))
+        model = IntrinsicsModel(
+            principal_point=ParamMode.VARYING
+            if self.config.ba_principal_point == "varying"
+            else ParamMode.CONSTANT
+        )
+        sigma = self.config.pp_prior_sigma_px
+        prior = (np.array(image_centre(image_size)), np.array([sigma, sigma]))
+        return bundle_adjust(
+            pair_observations(pairs),
+            lm.K,
+            lm.R,
+            image_size,
+            model,
+            pp_prior=prior,
+            noise_sigma=self.config.ba_noise_sigma_px,
+            max_iterations=self.config.ba_max_iterations,
+            f_min=0.2 * float(np.min(lm.K[:, 1, 1])),
+        )
+
+
+def _visible(src: Array, dst: Array, width: int, height: int) -> tuple[Array, Array]:
+    ok = np.isfinite(dst).all(axis=1)
+    ok &= (dst[:, 0] >= 0) & (dst[:, 0] <= width - 1) & (dst[:, 1] >= 0) & (dst[:, 1] <= height - 1)
+    return src[ok], dst[ok]
+
+
+# --------------------------------------------------------------------------------------------------
+# The session
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class _PendingKeyframe:
+    keyframe_id: int
+    H: Array
+    stamp: float
+    zoom: float
+
+
+@dataclass
+class _Snapshot:
+    """Immutable view of the calibration for the frame thread."""
+
+    calibrator: IncrementalCalibrator
+    calibrated: bool
+    state: str
+    message: str
+    residual: float
+    keyframe_count: int
+    sigma_pp: tuple[float, float] = (math.nan, math.nan)
+
+
+class CalibratorSession:
+    """One camera's self-calibration over a run (see the module docstring)."""
+
+    def __init__(self, config: SessionConfig | None = None, state_dir: str | os.PathLike[str] | None = None):
+        self.config = config or SessionConfig()
+        self.state_dir = Path(state_dir) if state_dir else None
+        self.counters: dict[str, int] = dict.fromkeys(
+            (
+                "frames",
+                "keyframes",
+                "keyframe_matches",
+                "invalid_homographies",
+                "frames_without_homography",
+                "reference_changes",
+                "solves",
+                "solve_failures",
+                "calibrator_errors",
+                "zoom_model_samples",
+                "state_saves",
+            ),
+            0,
+        )
+        self.status_counts: dict[str, int] = dict.fromkeys(STATUSES, 0)
+        self._warnings: deque[str] = deque(maxlen=100)
+        self._lock = threading.RLock()  # guards the calibrator, the matches and the zoom model
+        self._pending: deque[_PendingKeyframe] = deque()
+        self._pending_matches: deque[KeyframeMatchSet] = deque()
+        self.matches: OrderedDict[tuple[int, int], KeyframeMatchSet] = OrderedDict()
+        self.solver = KeyframeBundleSolver(self.config, self.matches)
+        self.calibrator: IncrementalCalibrator | None = None
+        self._snapshot: _Snapshot | None = None
+        self.reference_id: str | None = None
+        self.image_size: tuple[int, int] | None = None
+        self.keyframe_zoom: dict[int, float] = {}
+        self._sampled_keyframes: set[int] = set()
+        self._seen_keyframes: set[int] = set()
+        self.last_good: FrameOutput | None = None
+        self.zoom_model = ZoomModel()
+        self._zoom_ready = False
+        self._dirty = False
+        self._frame_times: deque[float] = deque(maxlen=2000)
+        self._solve_times: deque[float] = deque(maxlen=200)
+
+    # ----------------------------------------------------------------------------------------------
+    # Frame thread
+    # ----------------------------------------------------------------------------------------------
+    def process(self, frame: FrameInput) -> FrameOutput:
+        """The calibration of one frame; O(1), never solves."""
+        start = time.perf_counter()
+        self.counters["frames"] += 1
+        if frame.width > 0 and frame.height > 0 and self.image_size != (frame.width, frame.height):
+            if self.image_size is not None:
+                self._warn(f"image size changed from {self.image_size} to {(frame.width, frame.height)}")
+                self._request_reset()
+            self.image_size = (int(frame.width), int(frame.height))
+        H = self._usable_homography(frame)
+        if H is None:
+            self.counters["frames_without_homography"] += 1
+            out = self._without_homography(frame)
+        else:
+            out = self._with_homography(frame, H)
+        out.time_s = time.perf_counter() - start
+        self._frame_times.append(out.time_s)
+        self.status_counts[out.status] += 1
+        return out
+
+    def _usable_homography(self, frame: FrameInput) -> Array | None:
+        if frame.tracking_state not in TRACKING_STATES_WITH_H:
+            return None
+        if frame.H is None:
+            self.counters["invalid_homographies"] += 1
+            return None
+        H = np.asarray(frame.H, dtype=float).reshape(3, 3)
+        ok = bool(np.all(np.isfinite(H)))
+        if ok:
+            det = float(np.linalg.det(H))
+            ok = math.isfinite(det) and det != 0.0 and abs(det) > 1e-12 * float(np.max(np.abs(H))) ** 3
+        if ok:
+            H = H / np.cbrt(det)
+            # in coordinates centred and scaled by the image width the homography of a rotating,
+            # zooming camera has singular values within the zoom ratio; wilder ones are tracker garbage
+            w = float(max(frame.width, 1))
+            N = np.array([[1 / w, 0, -0.5 * frame.width / w], [0, 1 / w, -0.5 * frame.height / w], [0, 0, 1]])
+            s = np.linalg.svd(N @ H @ np.linalg.inv(N), compute_uv=False)
+            ok = bool(np.all(np.isfinite(s))) and s[0] / max(s[2], 1e-300) < self.config.max_focal_ratio**2
+        if not ok:
+            self.counters["invalid_homographies"] += 1
+            return None
+        return H
+
+    def _with_homography(self, frame: FrameInput, H: Array) -> FrameOutput:
+        if frame.reference_id and self.reference_id is not None and frame.reference_id != self.reference_id:
+            self.counters["reference_changes"] += 1
+            self._warn(
+                f"tracking reference changed from {self.reference_id!r} to {frame.reference_id!r}: "
+                "calibration restarted on the new reference (zoom model kept)"
+            )
+            self._request_reset()
+        if self.reference_id is None:
+            self.reference_id = frame.reference_id
+            self._dirty = True
+        kid = int(frame.keyframe_id)
+        if frame.tracking_state == "NEW_KEYFRAME" and kid not in self._seen_keyframes:
+            self._seen_keyframes.add(kid)
+            self._pending.append(_PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom)))
+        snap = self._snapshot
+        if snap is not None and snap.calibrated:
+            try:
+                K, R, sigma_f = snap.calibrator.frame_intrinsics(H)
+                if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
+                    return self._calibrated_output(snap, frame, K, R, sigma_f)
+            except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
+                self._warn(f"frame intrinsics failed: {exc}")
+        status = DEGENERATE_MOTION if snap is not None and snap.state == DEGENERATE_MOTION else INITIALISING
+        out = self._prior_output(frame, status, H)
+        if snap is not None and snap.message:
+            out.message = snap.message
+        return out
+
+    def _calibrated_output(
+        self, snap: _Snapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float
+    ) -> FrameOutput:
+        status = snap.state if snap.state in (CALIBRATING, CONVERGED, DEGENERATE_MOTION) else CALIBRATING
+        out = FrameOutput(
+            status=status,
+            K=np.asarray(K, dtype=float),
+            D=self._zoom_distortion(frame.zoom),
+            R=np.asarray(R, dtype=float) if np.all(np.isfinite(R)) else None,
+            sigma_f=float(sigma_f),
+            sigma_cx=snap.sigma_pp[0],
+            sigma_cy=snap.sigma_pp[1],
+            residual=snap.residual,
+            keyframe_id=int(frame.keyframe_id),
+            keyframe_count=snap.keyframe_count,
+            source="calibration",
+            message=snap.message,
+        )
+        if status != DEGENERATE_MOTION:
+            self.last_good = out
+        return out
+
+    def _prior_output(self, frame: FrameInput, status: str, H: Array | None) -> FrameOutput:
+        """Before calibration: the zoom model at this zoom, else the prior reference K through H."""
+        predicted = self._predict_from_zoom(frame, status)
+        if predicted is not None:
+            predicted.source = "zoom_model"
+            if H is not None and self._snapshot is not None:
+                with contextlib.suppress(ValueError, np.linalg.LinAlgError):
+                    predicted.R = rotation_from_homography(
+                        H, self._snapshot.calibrator.reference_K, predicted.K
+                    )
+            return predicted
+        out = self._nominal_output(frame, status)
+        snap = self._snapshot
+        K_ref = out.K if snap is None else snap.calibrator.reference_K
+        if H is not None:
+            try:
+                K, R, _ = (
+                    snap.calibrator if snap is not None else self._prior_calibrator()
+                ).frame_intrinsics(H)
+                if np.all(np.isfinite(K)) and K[0, 0] > 0:
+                    out.K, out.R = np.asarray(K, dtype=float), np.asarray(R, dtype=float)
+                    out.sigma_f = self.config.prior_sigma_f_fraction * float(K[0, 0])
+                    out.source = "prior"
+            except (SelfCalibrationError, ValueError, np.linalg.LinAlgError):
+                with contextlib.suppress(ValueError, np.linalg.LinAlgError):
+                    out.R = rotation_from_homography(H, K_ref, out.K)
+        return out
+
+    def _without_homography(self, frame: FrameInput) -> FrameOutput:
+        predicted = self._predict_from_zoom(frame, PREDICTED_FROM_ZOOM)
+        if predicted is not None:
+            return predicted
+        if self.last_good is not None:
+            last = self.last_good
+            return FrameOutput(
+                status=TRACKING_LOST,
+                K=last.K.copy(),
+                D=last.D.copy(),
+                R=None,
+                sigma_f=last.sigma_f,
+                sigma_cx=last.sigma_cx,
+                sigma_cy=last.sigma_cy,
+                residual=math.nan,
+                keyframe_id=last.keyframe_id,
+                keyframe_count=last.keyframe_count,
+                source="last_good",
+            )
+        return self._nominal_output(frame, TRACKING_LOST)
+
+    def _nominal_output(self, frame: FrameInput, status: str) -> FrameOutput:
+        width, height = self.image_size or (max(frame.width, 1), max(frame.height, 1))
+        f = self.config.nominal_focal(width)
+        return FrameOutput(
+            status=status,
+            K=intrinsic_matrix(f, 0.5 * (width - 1.0), 0.5 * (height - 1.0)),
+            D=np.zeros(5),
+            R=None,
+            sigma_f=self.config.prior_sigma_f_fraction * f,
+            sigma_cx=0.05 * width,
+            sigma_cy=0.05 * height,
+            residual=math.nan,
+            keyframe_id=int(frame.keyframe_id),
+            keyframe_count=self._snapshot.keyframe_count if self._snapshot else 0,
+            source="nominal",
+        )
+
+    def _prior_calibrator(self) -> IncrementalCalibrator:
+        assert self.image_size is not None
+        return self._new_calibrator()
+
+    # ---- zoom model ------------------------------------------------------------------------------
+    def _predict_from_zoom(self, frame: FrameInput, status: str) -> FrameOutput | None:
+        if not math.isfinite(frame.zoom) or not self._zoom_ready:
+            return None
+        with self._lock:
+            try:
+                K, D, sigma_f, _ = self.zoom_model.predict(float(frame.zoom))
+            except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
+                self._warn(f"zoom model prediction failed: {exc}")
+                return None
+        if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0:
+            return None
+        return FrameOutput(
+            status=status,
+            K=np.asarray(K, dtype=float),
+            D=np.nan_to_num(np.asarray(D, dtype=float).reshape(5)),
+            R=None,
+            sigma_f=float(sigma_f),
+            sigma_cx=math.nan,
+            sigma_cy=math.nan,
+            residual=math.nan,
+            keyframe_id=int(frame.keyframe_id),
+            keyframe_count=self._snapshot.keyframe_count if self._snapshot else 0,
+            source="zoom_model",
+        )
+
+    def _zoom_distortion(self, zoom: float) -> Array:
+        """Distortion is not estimated by the calibration itself: plumb_bob zeros (DESIGN.md section 3)."""
+        del zoom
+        return np.zeros(5)
+
+    # ---- keyframe matches (frame thread queues, worker applies) ------------------------------------
+    def add_keyframe_matches(
+        self, keyframe_id: int, other_keyframe_id: int, points: Array, other_points: Array
+    ) -> bool:
+        a = np.asarray(points, dtype=float).reshape(-1, 2)
+        b = np.asarray(other_points, dtype=float).reshape(-1, 2)
+        if len(a) != len(b) or len(a) < 8 or not (np.isfinite(a).all() and np.isfinite(b).all()):
+            self._warn(
+                f"keyframe matches {keyframe_id}<->{other_keyframe_id} unusable ({len(a)}/{len(b)} points)"
+            )
+            return False
+        self._pending_matches.append(KeyframeMatchSet(int(keyframe_id), int(other_keyframe_id), a, b))
+        self.counters["keyframe_matches"] += 1
+        return True
+
+    # ----------------------------------------------------------------------------------------------
+    # Worker: add keyframes, solve, publish a snapshot
+    # ----------------------------------------------------------------------------------------------
+    def step(self, max_seconds: float) -> bool:
+        """Apply queued keyframes and matches, re-optimise within about max_seconds; True if it solved."""
+        with self._lock:
+            if self.image_size is None:
+                return False
+            if self._reset_requested:
+                self._do_reset()
+            while self._pending_matches:
+                m = self._pending_matches.popleft()
+                self.matches[(m.keyframe_id, m.other_keyframe_id)] = m
+                while len(self.matches) > self.config.max_match_pairs:
+                    self.matches.popitem(last=False)
+            if self.calibrator is None:
+                self.calibrator = self._new_calibrator()
+            calibrator = self.calibrator
+            added = 0
+            solved = False
+            start = time.perf_counter()
+            while self._pending:
+                kf = self._pending.popleft()
+                if np.allclose(kf.H, np.eye(3), atol=1e-9):
+                    self.solver.reference_keyframe_id = kf.keyframe_id  # the reference itself
+                    self.keyframe_zoom[kf.keyframe_id] = kf.zoom
+                    continue
+                was_calibrated = calibrator.calibrated
+                before = calibrator.last_solve
+                try:
+                    calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp)
+                except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
+                    self.counters["calibrator_errors"] += 1
+                    self._warn(f"keyframe {kf.keyframe_id} rejected: {exc}")
+                    continue
+                self.keyframe_zoom[kf.keyframe_id] = kf.zoom
+                self.counters["keyframes"] += 1
+                added += 1
+                if calibrator.last_solve is not before:
+                    solved = True
+                    self._solved(calibrator, time.perf_counter() - start, first=not was_calibrated)
+                if time.perf_counter() - start > max_seconds:
+                    break
+            remaining = max_seconds - (time.perf_counter() - start)
+            if calibrator.calibrated and (added or self._needs_refinement) and remaining > 0.0 and not solved:
+                before = calibrator.last_solve
+                t0 = time.perf_counter()
+                try:
+                    calibrator.reoptimise(remaining)
+                except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
+                    self.counters["calibrator_errors"] += 1
+                    self._warn(f"re-optimisation failed: {exc}")
+                if calibrator.last_solve is not before:
+                    solved = True
+                    self._solved(calibrator, time.perf_counter() - t0, first=False)
+                else:
+                    self.counters["solve_failures"] += 1
+                self._needs_refinement = False
+            if added or solved or self._snapshot is None:
+                self._publish_snapshot()
+                self._dirty = True
+            return solved
+
+    _reset_requested = False
+    _needs_refinement = False
+
+    def _new_calibrator(self) -> IncrementalCalibrator:
+        assert self.image_size is not None
+        width, height = self.image_size
+        f = self.config.nominal_focal(width)
+        prior = intrinsic_matrix(f, 0.5 * (width - 1.0), 0.5 * (height - 1.0))
+        zoom = (
+            self.keyframe_zoom.get(self.solver.reference_keyframe_id, math.nan) if self.solver else math.nan
+        )
+        if self._zoom_ready and math.isfinite(zoom):
+            with contextlib.suppress(ZoomModelError, ValueError):
+                prior = self.zoom_model.predict(zoom).K
+        return IncrementalCalibrator(
+            self.image_size,
+            min_rotation_deg=self.config.min_rotation_deg,
+            max_keyframes=self.config.max_keyframes,
+            prior_K=prior,
+            solver=self.solver,
+            solve_interval=1_000_000_000,  # re-solves are the worker's, bounded in time
+            min_keyframes=self.config.min_keyframes,
+        )
+
+    def _solved(self, calibrator: IncrementalCalibrator, seconds: float, first: bool) -> None:
+        self.counters["solves"] += 1
+        self._solve_times.append(seconds)
+        if first and calibrator.calibrated:
+            self._needs_refinement = True  # a second, warm-started pass (with BA) right away
+        if calibrator.state is CalibrationState.CONVERGED:
+            self._learn_zoom_model(calibrator)
+
+    def _publish_snapshot(self) -> None:
+        calibrator = self.calibrator
+        assert calibrator is not None
+        snapshot_calibrator = IncrementalCalibrator.from_dict(calibrator.to_dict())
+        residual = calibrator.last_solve.residual if calibrator.last_solve is not None else math.nan
+        message = calibrator.message or (calibrator.motion.message if calibrator.motion else "")
+        self._snapshot = _Snapshot(
+            calibrator=snapshot_calibrator,
+            calibrated=calibrator.calibrated,
+            state=calibrator.state.value,
+            message=message,
+            residual=float(residual),
+            keyframe_count=len(calibrator.keyframes) + 1,
+        )
+
+    def _learn_zoom_model(self, calibrator: IncrementalCalibrator) -> None:
+        """Converged keyframes (each once) become zoom model samples: zoom -> (f, cx, cy)."""
+        for kf in calibrator.keyframes:
+            kid = int(kf.keyframe_id)
+            zoom = self.keyframe_zoom.get(kid, math.nan)
+            if kid in self._sampled_keyframes or kf.K is None or not math.isfinite(zoom):
+                continue
+            K = kf.K
+            if self.zoom_model.add_sample(zoom, K[1, 1], K[0, 2], K[1, 2]):
+                self._sampled_keyframes.add(kid)
+                self.counters["zoom_model_samples"] += 1
+        ref = self.solver.reference_keyframe_id
+        if ref is not None and ref not in self._sampled_keyframes:
+            zoom = self.keyframe_zoom.get(ref, math.nan)
+            K = calibrator.reference_K
+            if math.isfinite(zoom) and self.zoom_model.add_sample(zoom, K[1, 1], K[0, 2], K[1, 2]):
+                self._sampled_keyframes.add(ref)
+                self.counters["zoom_model_samples"] += 1
+        if len(self._sampled_keyframes) >= self.config.zoom_model_min_keyframes or self._zoom_ready:
+            try:
+                self.zoom_model.predict(float(np.nanmedian(list(self.keyframe_zoom.values()))))
+                self._zoom_ready = True
+            except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
+                self._warn(f"zoom model not usable yet: {exc}")
+
+    def _request_reset(self) -> None:
+        self._reset_requested = True
+        self._snapshot = None
+        self.reference_id = None
+        self._seen_keyframes.clear()
+        self._pending.clear()
+
+    def _do_reset(self) -> None:
+        self._reset_requested = False
+        self.calibrator = None
+        self.matches.clear()
+        self.keyframe_zoom.clear()
+        self._sampled_keyframes.clear()
+        self.solver.reference_keyframe_id = None
+        self._dirty = True
+
+    # ----------------------------------------------------------------------------------------------
+    # Persistence
+    # ----------------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        with self._lock:
+            last = self.last_good
+            return _plain(
+                {
+                    "version": STATE_VERSION,
+                    "saved_at": time.time(),
+                    "image_size": list(self.image_size) if self.image_size else None,
+                    "reference_id": self.reference_id,
+                    "reference_keyframe_id": self.solver.reference_keyframe_id,
+                    "keyframe_zoom": {int(k): float(v) for k, v in self.keyframe_zoom.items()},
+                    "sampled_keyframes": sorted(int(k) for k in self._sampled_keyframes),
+                    "last_good": None
+                    if last is None
+                    else {"K": last.K.tolist(), "D": last.D.tolist(), "sigma_f": float(last.sigma_f)},
+                    "calibrator": None if self.calibrator is None else self.calibrator.to_dict(),
+                }
+            )
+
+    def load_dict(self, data: dict) -> None:
+        """Restore from `to_dict` output; StateFileError when it does not fit."""
+        if data.get("version") != STATE_VERSION:
+            raise StateFileError(f"state version {data.get('version')!r}, expected {STATE_VERSION}")
+        try:
+            size = data.get("image_size")
+            image_size = (int(size[0]), int(size[1])) if size else None
+            calibrator = None
+            if data.get("calibrator") is not None:
+                calibrator = IncrementalCalibrator.from_dict(data["calibrator"], solver=self.solver)
+            last_good = None
+            last = data.get("last_good")
+            if last:
+                K = np.asarray(last["K"], dtype=float).reshape(3, 3)
+                if not np.all(np.isfinite(K)) or K[0, 0] <= 0:
+                    raise StateFileError("last K is not valid")
+                last_good = FrameOutput(
+                    status=CALIBRATING,
+                    K=K,
+                    D=np.asarray(last.get("D", [0.0] * 5), dtype=float).reshape(5),
+                    R=None,
+                    sigma_f=float(last.get("sigma_f", math.nan)),
+                    sigma_cx=math.nan,
+                    sigma_cy=math.nan,
+                    residual=math.nan,
+                    keyframe_id=0,
+                    keyframe_count=0,
+                    source="last_good",
+                )
+            keyframe_zoom = {
+                int(k): math.nan if v is None else float(v)
+                for k, v in (data.get("keyframe_zoom") or {}).items()
+            }
+            sampled = {int(k) for k in data.get("sampled_keyframes") or []}
+            ref_kf = data.get("reference_keyframe_id")
+        except StateFileError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+            raise StateFileError(f"state does not load: {type(exc).__name__}: {exc}") from exc
+        with self._lock:
+            self.image_size = image_size
+            self.reference_id = data.get("reference_id")
+            self.solver.reference_keyframe_id = None if ref_kf is None else int(ref_kf)
+            self.calibrator = calibrator
+            self.keyframe_zoom = keyframe_zoom
+            self._sampled_keyframes = sampled
+            self._seen_keyframes = set(keyframe_zoom)
+            self.last_good = last_good
+            if calibrator is not None:
+                self._publish_snapshot()
+
+    def save(self) -> list[str]:
+        """Save the state and the zoom model atomically into state_dir; returns the files written."""
+        if self.state_dir is None:
+            return []
+        with self._lock:
+            text = yaml.safe_dump(self.to_dict(), sort_keys=False)
+            atomic_write_text(self.state_dir / STATE_FILE, text)
+            written = [str(self.state_dir / STATE_FILE)]
+            if not self.zoom_model.is_empty():
+                self.zoom_model.save(self.state_dir / ZOOM_MODEL_FILE)
+                written.append(str(self.state_dir / ZOOM_MODEL_FILE))
+            self._dirty = False
+            self.counters["state_saves"] += 1
+        return written
+
+    @property
+    def dirty(self) -> bool:
+        return self._dirty
+
+    def restore(self) -> list[str]:
+        """Load the state and the zoom model from state_dir; returns log lines ("WARNING: ..." first).
+
+        A corrupt file gives a warning and a fresh start for that part, never an exception.
+        """
+        messages: list[str] = []
+        if self.state_dir is None:
+            return messages
+        path = self.state_dir / STATE_FILE
+        try:
+            data = load_yaml_file(path)
+            if data is not None:
+                self.load_dict(data)
+                state = self.calibrator.state.value if self.calibrator else "none"
+                messages.append(
+                    f"restored calibration state from {path}: {state}, "
+                    f"{len(self.keyframe_zoom)} keyframes, reference {self.reference_id!r}"
+                )
+        except StateFileError as exc:
+            messages.append(f"WARNING: ignoring calibration state {path} ({exc}); starting fresh")
+        zpath = self.state_dir / ZOOM_MODEL_FILE
+        model, problem = ZoomModel.load_or_new(zpath)
+        if problem is not None:
+            messages.append(f"WARNING: ignoring zoom model {zpath} ({problem}); learning a new one")
+        elif not model.is_empty():
+            try:
+                model.predict(float(np.mean(model.covered_range())))
+                self._zoom_ready = True
+                messages.append(f"loaded zoom model from {zpath} (zoom range {model.covered_range()})")
+            except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
+                messages.append(f"WARNING: zoom model {zpath} not usable ({exc})")
+        self.zoom_model = model
+        return messages
+
+    # ----------------------------------------------------------------------------------------------
+    # Diagnostics
+    # ----------------------------------------------------------------------------------------------
+    def timings_ms(self) -> dict[str, float]:
+        def pct(values: deque[float], q: float) -> float:
+            return float(np.percentile(np.fromiter(values, float), q)) * 1e3 if values else math.nan
+
+        return {
+            "frame_ms_median": pct(self._frame_times, 50),
+            "frame_ms_p95": pct(self._frame_times, 95),
+            "frame_ms_max": pct(self._frame_times, 100),
+            "solve_ms_median": pct(self._solve_times, 50),
+            "solve_ms_max": pct(self._solve_times, 100),
+        }
+
+    @property
+    def state(self) -> str:
+        snap = self._snapshot
+        return "NONE" if snap is None else snap.state
+
+    def _warn(self, text: str) -> None:
+        self._warnings.append(text)
+
+    def take_warnings(self) -> list[str]:
+        out = list(self._warnings)
+        self._warnings.clear()
+        return out
+
+
+def _plain(value: Any) -> Any:
+    """YAML-safe plain Python (numpy arrays and scalars converted, tuples as lists)."""
+    if isinstance(value, dict):
+        return {(k if isinstance(k, str | int) else str(k)): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None if math.isnan(value) else value
+    return value

@@ -1,0 +1,355 @@
+"""calibrator node: HomographyStamped (one per frame) + KeyframeMatches in, one CameraInfo per frame out.
+
+A thin wrapper of core/calibration_state.CalibratorSession (which drives core/incremental's
+IncrementalCalibrator with LM + the keyframe bundle adjustment with the MAP principal-point prior).
+For every HomographyStamped it publishes EXACTLY ONE sensor_msgs/CameraInfo on topics.CAMERA_INFO
+(header copied, full-resolution size, K, P = [K|0], R = I, plumb_bob D = [k1, k2, 0, 0, 0]) and one
+FrameCalibration on topics.FRAME_CALIBRATION, whatever happens: before convergence from the best
+prior (saved zoom model, else nominal parameters), with lost tracking from the zoom model
+(PREDICTED_FROM_ZOOM) or the last good K (TRACKING_LOST). Re-optimisation runs in a worker thread on
+keyframes only, so a frame never waits for it. The encoders are not used for calibration (they are
+ground truth); the zoom encoder is used to learn and query the zoom model.
+
+State: with `state_dir` set, the calibration state and the zoom model are saved atomically every
+`save_period` seconds (when changed) and on shutdown, and reloaded at start (a corrupt file gives a
+warning and a fresh start). Run:
+    python -m ptz_selfcal.nodes.calibrator --ros-args -p state_dir:=/var/lib/ptz_selfcal/cam1
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+import traceback
+from collections import Counter
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import Quaternion
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo
+
+from ptz_selfcal import topics
+from ptz_selfcal.core.calibration_state import (
+    CalibratorSession,
+    FrameInput,
+    FrameOutput,
+    SessionConfig,
+)
+from ptz_selfcal.core.geometry import quaternion_from_matrix
+from ptz_selfcal.nodes.conversions import (
+    ConfigError,
+    Param,
+    camera_info_fields,
+    declare_params,
+    diagnostic_values,
+    in_range,
+    one_of,
+    stamp_to_sec,
+)
+from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches
+
+PARAMS = [
+    Param(
+        "nominal_hfov_deg",
+        60.0,
+        "horizontal field of view (deg) of the nominal prior used before the first calibration",
+        in_range(1.0, 170.0),
+    ),
+    Param(
+        "nominal_focal_px",
+        0.0,
+        "nominal focal length in full-resolution pixels (> 0 overrides nominal_hfov_deg)",
+        in_range(0.0, 1e6),
+    ),
+    Param(
+        "state_dir",
+        "",
+        "directory of the saved calibration state and zoom model ('' = no persistence)",
+    ),
+    Param("save_period", 30.0, "seconds between state saves (when changed)", in_range(0.1, 86400.0)),
+    Param(
+        "reoptimise_budget",
+        0.5,
+        "seconds one worker re-optimisation step may take (runs beside the frames, never blocks them)",
+        in_range(0.001, 60.0),
+    ),
+    Param("reoptimise_period", 0.05, "seconds the worker waits for new keyframes", in_range(0.001, 10.0)),
+    Param(
+        "min_rotation_deg",
+        2.0,
+        "keyframe rotation off the reference's optical axis needed before the first solve (section 6)",
+        in_range(0.0, 90.0),
+    ),
+    Param("min_keyframes", 4, "keyframes needed before the first solve", in_range(2, 1000)),
+    Param(
+        "max_keyframes",
+        30,
+        "keyframes kept in the re-optimisation (bounds time and memory)",
+        in_range(4, 1000),
+    ),
+    Param("bundle_adjustment", True, "refine LM with the keyframe bundle adjustment (section 5)"),
+    Param(
+        "ba_principal_point",
+        "constant",
+        "principal point in the bundle adjustment: constant or varying (per keyframe), both with the prior",
+        one_of("constant", "varying"),
+    ),
+    Param(
+        "pp_prior_sigma_px",
+        20.0,
+        "1-sigma (px) of the MAP principal-point prior at the image centre (eq. 27)",
+        in_range(0.1, 1e5),
+    ),
+    Param(
+        "ba_max_points_per_pair", 50, "matches per keyframe pair used by the adjustment", in_range(8, 10000)
+    ),
+    Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
+]
+
+_STATUS = {
+    name: getattr(FrameCalibration, name)
+    for name in (
+        "INITIALISING",
+        "CALIBRATING",
+        "CONVERGED",
+        "DEGENERATE_MOTION",
+        "TRACKING_LOST",
+        "PREDICTED_FROM_ZOOM",
+    )
+}
+_TRACKING_STATE = {
+    HomographyStamped.TRACKING: "TRACKING",
+    HomographyStamped.NEW_KEYFRAME: "NEW_KEYFRAME",
+    HomographyStamped.RELOCALISED: "RELOCALISED",
+    HomographyStamped.TRACKING_LOST: "TRACKING_LOST",
+    HomographyStamped.TEXTURELESS: "TEXTURELESS",
+}
+
+
+class CalibratorNode(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("calibrator", **kwargs)
+        p = declare_params(self, PARAMS)
+        self._p = p
+        config = SessionConfig(
+            nominal_focal_px=p["nominal_focal_px"],
+            nominal_hfov_deg=p["nominal_hfov_deg"],
+            min_rotation_deg=p["min_rotation_deg"],
+            min_keyframes=p["min_keyframes"],
+            max_keyframes=max(p["max_keyframes"], p["min_keyframes"]),
+            bundle_adjustment=p["bundle_adjustment"],
+            ba_principal_point=p["ba_principal_point"],
+            pp_prior_sigma_px=p["pp_prior_sigma_px"],
+            ba_max_points_per_pair=p["ba_max_points_per_pair"],
+        )
+        self._session = CalibratorSession(config, state_dir=p["state_dir"] or None)
+        for line in self._session.restore():
+            (self.get_logger().warning if line.startswith("WARNING") else self.get_logger().info)(line)
+
+        self._counts: Counter[str] = Counter()
+        self._warned: set[str] = set()
+        self._last_status: str | None = None
+        self._last_save = time.monotonic()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+
+        self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
+        self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        self.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self._on_homography, reliable_qos())
+        self.create_subscription(KeyframeMatches, topics.KEYFRAMES, self._on_keyframe_matches, reliable_qos())
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name="calibrator_reoptimise", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"calibrating {topics.HOMOGRAPHY} -> {self._info_pub.topic_name}; state_dir "
+            f"{p['state_dir'] or '(none: no persistence)'}; bundle adjustment "
+            f"{'on' if p['bundle_adjustment'] else 'off'} (pp {p['ba_principal_point']}, "
+            f"prior sigma {p['pp_prior_sigma_px']} px)"
+        )
+
+    # ----------------------------------------------------------------------------------------------
+    def _warn_once(self, kind: str, message: str) -> None:
+        self._counts[kind] += 1
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self.get_logger().warning(f"{kind}: {message} (further ones counted in diagnostics)")
+
+    def _on_homography(self, msg: HomographyStamped) -> None:
+        self._counts["homographies_in"] += 1
+        width, height = int(msg.image_width), int(msg.image_height)
+        try:
+            h = np.asarray(msg.h, dtype=float)
+            enc = msg.encoders
+            zoom = float(enc.zoom) if enc.valid and math.isfinite(enc.zoom) else math.nan
+            ref = msg.reference_stamp
+            frame = FrameInput(
+                stamp=stamp_to_sec(msg.header.stamp),
+                H=h.reshape(3, 3) if h.size == 9 else None,
+                tracking_state=_TRACKING_STATE.get(msg.state, "TRACKING_LOST"),
+                width=width,
+                height=height,
+                keyframe_id=int(msg.keyframe_id),
+                reference_id=f"{msg.reference_frame_id}@{ref.sec}.{ref.nanosec:09d}",
+                zoom=zoom,
+            )
+            if width <= 0 or height <= 0:
+                self._warn_once("bad_image_size", f"image size {width}x{height} in a HomographyStamped")
+            before = self._session.counters["invalid_homographies"]
+            out = self._session.process(frame)
+            if self._session.counters["invalid_homographies"] > before:
+                self._warn_once("invalid_homography", "a non-finite or implausible homography was ignored")
+        except Exception as exc:  # never lose a frame's CameraInfo to a bug
+            self._warn_once("calibrator_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            out = self._session._nominal_output(
+                FrameInput(0.0, None, "TRACKING_LOST", max(width, 1), max(height, 1)), "TRACKING_LOST"
+            )
+        if msg.state == HomographyStamped.NEW_KEYFRAME:
+            self._wake.set()  # the worker adds the keyframe and re-optimises
+        self._publish(msg, out)
+        if out.status != self._last_status:
+            self.get_logger().info(
+                f"status {self._last_status or '-'} -> {out.status}: f={out.K[0, 0]:.1f} px, "
+                f"pp=({out.K[0, 2]:.1f}, {out.K[1, 2]:.1f}), K from {out.source}"
+                + (f" ({out.message})" if out.message else "")
+            )
+            self._last_status = out.status
+
+    def _publish(self, msg: HomographyStamped, out: FrameOutput) -> None:
+        width, height = int(msg.image_width), int(msg.image_height)
+        info = CameraInfo()
+        info.header = msg.header
+        for key, value in camera_info_fields(out.K, width, height, out.D[0], out.D[1]).items():
+            setattr(info, key, value)
+        self._info_pub.publish(info)
+
+        fc = FrameCalibration()
+        fc.header = msg.header
+        fc.status = _STATUS[out.status]
+        K = out.K
+        fc.fx, fc.fy, fc.cx, fc.cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        fc.skew = float(K[0, 1])
+        fc.k1, fc.k2 = float(out.D[0]), float(out.D[1])
+        if out.R is not None:
+            q = quaternion_from_matrix(out.R)
+            fc.orientation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+        else:  # unknown orientation: the (invalid) zero quaternion says so
+            fc.orientation = Quaternion(x=0.0, y=0.0, z=0.0, w=0.0)
+        fc.encoders = msg.encoders
+        fc.sigma_f = _finite_or(out.sigma_f, -1.0)
+        fc.sigma_cx = _finite_or(out.sigma_cx, -1.0)
+        fc.sigma_cy = _finite_or(out.sigma_cy, -1.0)
+        fc.residual = _finite_or(out.residual, -1.0)
+        fc.keyframe_id = int(out.keyframe_id) & 0xFFFFFFFF
+        fc.keyframe_count = int(out.keyframe_count)
+        self._frame_pub.publish(fc)
+        self._counts["camera_info_out"] += 1
+
+    def _on_keyframe_matches(self, msg: KeyframeMatches) -> None:
+        self._counts["keyframe_matches_in"] += 1
+        try:
+            a = np.asarray(msg.points, dtype=float).reshape(-1, 2)
+            b = np.asarray(msg.other_points, dtype=float).reshape(-1, 2)
+        except ValueError:
+            self._warn_once("bad_keyframe_matches", "point arrays of odd length")
+            return
+        if not self._session.add_keyframe_matches(int(msg.keyframe_id), int(msg.other_keyframe_id), a, b):
+            self._warn_once(
+                "bad_keyframe_matches", "unusable keyframe matches (too few or non-finite points)"
+            )
+            return
+        self._wake.set()
+
+    # ----------------------------------------------------------------------------------------------
+    def _work(self) -> None:
+        """Worker thread: keyframes into the calibrator, bounded re-optimisation, periodic saves."""
+        budget = self._p["reoptimise_budget"]
+        while not self._stop.is_set():
+            self._wake.wait(self._p["reoptimise_period"])
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            try:
+                before = self._session.state
+                self._session.step(budget)
+                after = self._session.state
+                if after != before:
+                    self.get_logger().info(f"calibration state {before} -> {after}")
+                for text in self._session.take_warnings():
+                    self.get_logger().warning(text)
+                if (
+                    self._session.state_dir is not None
+                    and self._session.dirty
+                    and time.monotonic() - self._last_save > self._p["save_period"]
+                ):
+                    self._save()
+            except Exception as exc:  # the worker must survive anything
+                self._warn_once("worker_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+                time.sleep(0.1)
+
+    def _save(self) -> None:
+        try:
+            files = self._session.save()
+            self._last_save = time.monotonic()
+            if files:
+                self.get_logger().debug(f"saved {', '.join(files)}")
+        except OSError as exc:
+            self._warn_once("state_save_failed", f"cannot save the calibration state: {exc}")
+
+    def _publish_diagnostics(self) -> None:
+        s = self._session
+        counters: dict[str, Any] = {"homographies_in": 0, "camera_info_out": 0}
+        counters.update(sorted(self._counts.items()))
+        counters.update(s.counters)
+        counters.update({f"status_{k}": v for k, v in s.status_counts.items()})
+        counters.update({k: f"{v:.3f}" for k, v in s.timings_ms().items() if math.isfinite(v)})
+        counters["calibration_state"] = s.state
+        counters["zoom_model_samples_total"] = s.zoom_model.sample_count
+        status = DiagnosticStatus()
+        status.name = self.get_fully_qualified_name()
+        status.hardware_id = topics.CAMERA_FRAME_ID
+        status.level = DiagnosticStatus.OK
+        if self._last_status in ("DEGENERATE_MOTION", "TRACKING_LOST", "PREDICTED_FROM_ZOOM"):
+            status.level = DiagnosticStatus.WARN
+        if self._counts.get("calibrator_error") or self._counts.get("worker_error"):
+            status.level = DiagnosticStatus.WARN
+        status.message = f"{counters['camera_info_out']} frames calibrated; last status {self._last_status}"
+        status.values = diagnostic_values(counters)
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self._diag_pub.publish(array)
+
+    def close(self) -> None:
+        """Stop the worker and save the state (called by run_node on shutdown)."""
+        self._stop.set()
+        self._wake.set()
+        self._worker.join(timeout=30.0)
+        if self._session.state_dir is not None:
+            try:
+                self._session.step(0.0)  # apply queued keyframes (no solve) so they are saved too
+            except Exception as exc:
+                self.get_logger().warning(f"final step failed: {exc}")
+            self._save()
+            self.get_logger().info(f"saved the calibration state to {self._session.state_dir}")
+
+
+def _finite_or(value: float, default: float) -> float:
+    return float(value) if value is not None and math.isfinite(value) else default
+
+
+def main(args: list[str] | None = None) -> int:
+    try:
+        return run_node(CalibratorNode, args)
+    except ConfigError as exc:
+        print(f"calibrator: configuration error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

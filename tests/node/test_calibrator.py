@@ -1,0 +1,307 @@
+"""The calibrator node in a real process, fed real HomographyStamped messages over DDS.
+
+The homographies come from exact synthetic geometry (H_j = K_j R_j R_0^T K_0^-1, core/geometry), the
+keyframe matches from the same geometry with 0.2 px noise; the test talks to the node in lock-step
+(the next frame goes out when the previous frame's CameraInfo arrived).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from sensor_msgs.msg import CameraInfo  # noqa: E402
+
+from ptz_selfcal import topics  # noqa: E402
+from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation  # noqa: E402
+from ptz_selfcal.nodes.runtime import reliable_qos  # noqa: E402
+from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches  # noqa: E402
+
+DOMAIN = 141
+WIDTH, HEIGHT = 1280, 720
+T0_NS = 1_700_000_000_000_000_000
+KEYFRAME_EVERY = 8
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(DOMAIN), PYTHONUNBUFFERED="1")
+    return env
+
+
+def sequence(n: int, pan_deg: float, tilt_deg: float, seed: int = 0):
+    """True K_j, R_j (world -> camera) and H_j (frame 0 -> frame j) of a zooming pan/tilt sweep."""
+    t = np.linspace(0.0, 1.0, n)
+    f = 900.0 * (1.0 + 1.5 * np.sin(np.pi * t))
+    pan = np.radians(pan_deg * np.sin(2 * np.pi * t))
+    tilt = np.radians(tilt_deg * np.sin(4 * np.pi * t + 0.4))
+    K = np.array([intrinsic_matrix(fi, 639.5 + 14.0, 359.5 - 11.0) for fi in f])
+    R = np.array([ptz_rotation(p, q) for p, q in zip(pan, tilt)])
+    H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
+    return K, R, H, f
+
+
+class Harness:
+    def __init__(self, name: str) -> None:
+        self.node = rclpy.create_node(name)
+        self.pub = self.node.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
+        self.kf_pub = self.node.create_publisher(KeyframeMatches, topics.KEYFRAMES, reliable_qos())
+        self.infos: dict[int, CameraInfo] = {}
+        self.frames: dict[int, FrameCalibration] = {}
+        self.info_count: dict[int, int] = {}
+        self.diagnostics: list[DiagnosticArray] = []
+        self.node.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info, reliable_qos())
+        self.node.create_subscription(
+            FrameCalibration, topics.FRAME_CALIBRATION, self._on_frame, reliable_qos()
+        )
+        self.node.create_subscription(
+            DiagnosticArray, topics.DIAGNOSTICS, self.diagnostics.append, reliable_qos(50)
+        )
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        self.infos[ns] = msg
+        self.info_count[ns] = self.info_count.get(ns, 0) + 1
+
+    def _on_frame(self, msg: FrameCalibration) -> None:
+        self.frames[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec] = msg
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            rclpy.spin_once(self.node, timeout_sec=0.02)
+            if predicate():
+                return True
+        return False
+
+    def wait_connected(self, timeout: float = 20.0) -> None:
+        ok = self.spin_until(
+            lambda: (
+                self.pub.get_subscription_count() > 0
+                and self.kf_pub.get_subscription_count() > 0
+                and self.node.count_publishers(topics.CAMERA_INFO) > 0
+            ),
+            timeout,
+        )
+        assert ok, "calibrator did not connect"
+
+    def send(
+        self, j: int, H: np.ndarray, state: int, keyframe_id: int, zoom: float, timeout: float = 10.0
+    ) -> int:
+        stamp = T0_NS + j * 33_333_333
+        msg = HomographyStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+        msg.header.frame_id = topics.CAMERA_FRAME_ID
+        msg.state = state
+        msg.reference_frame_id = topics.CAMERA_FRAME_ID
+        msg.reference_stamp.sec, msg.reference_stamp.nanosec = divmod(T0_NS, 10**9)
+        msg.keyframe_id = keyframe_id
+        msg.h = [float(v) for v in np.asarray(H, dtype=float).ravel()]
+        msg.inlier_count = 200
+        msg.image_width, msg.image_height = WIDTH, HEIGHT
+        msg.encoders.zoom, msg.encoders.valid = float(zoom), True
+        msg.encoders.pan = msg.encoders.tilt = float("nan")
+        self.pub.publish(msg)
+        assert self.spin_until(lambda: stamp in self.infos and stamp in self.frames, timeout), (
+            f"no output for {j}"
+        )
+        return stamp
+
+    def send_matches(self, a: int, b: int, H: np.ndarray, rng: np.random.Generator) -> None:
+        """Matches of keyframe a (points) with keyframe b (other_points), 0.2 px noise."""
+        xa = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], (300, 2))
+        xb = apply_homography(H[b] @ np.linalg.inv(H[a]), xa)
+        ok = (xb[:, 0] >= 0) & (xb[:, 0] <= WIDTH - 1) & (xb[:, 1] >= 0) & (xb[:, 1] <= HEIGHT - 1)
+        msg = KeyframeMatches()
+        msg.keyframe_id, msg.other_keyframe_id = a, b
+        msg.h = [float(v) for v in (H[a] @ np.linalg.inv(H[b])).ravel()]
+        msg.points = (xa[ok] + rng.normal(0, 0.2, xa[ok].shape)).astype(np.float32).ravel().tolist()
+        msg.other_points = (xb[ok] + rng.normal(0, 0.2, xb[ok].shape)).astype(np.float32).ravel().tolist()
+        self.kf_pub.publish(msg)
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def start_calibrator(namespace: str, *params: str) -> subprocess.Popen:
+    args = [sys.executable, "-m", "ptz_selfcal.nodes.calibrator", "--ros-args", "-r", f"__ns:={namespace}"]
+    for p in params:
+        args += ["-p", p]
+    args += ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
+    return subprocess.Popen(args, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def stop(proc: subprocess.Popen) -> str:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.stdout.read() if proc.stdout else ""
+
+
+@pytest.fixture(scope="module")
+def ros():
+    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(DOMAIN))
+    rclpy.init()
+    yield
+    rclpy.shutdown()
+
+
+def _relative_f_error(info: CameraInfo, K_true: np.ndarray) -> float:
+    return abs(info.k[0] / K_true[0, 0] - 1.0)
+
+
+def test_calibrates_every_frame_survives_garbage_and_restores_state(ros, tmp_path: Path) -> None:
+    state_dir = tmp_path / "state"
+    ns = "/cam_a"
+    proc = start_calibrator(ns, f"state_dir:={state_dir}", "save_period:=0.5", "nominal_hfov_deg:=50.0")
+    harness = _namespaced_harness(ns)
+    output = ""
+    try:
+        harness.wait_connected()
+        n = 140
+        K, _, H, f = sequence(n, pan_deg=30.0, tilt_deg=8.0)
+        rng = np.random.default_rng(5)
+        stamps = []
+        bad = {37: np.full((3, 3), np.nan), 61: np.zeros((3, 3)), 62: np.diag([1e9, 1e-9, 1.0])}
+        for j in range(n):
+            keyframe = j % KEYFRAME_EVERY == 0
+            kid = j - j % KEYFRAME_EVERY
+            state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
+            if keyframe and j > 0:
+                harness.send_matches(j, j - KEYFRAME_EVERY, H, rng)
+            Hj = bad.get(j, H[j])
+            stamps.append(harness.send(j, Hj, HomographyStamped.TRACKING if j in bad else state, kid, f[j]))
+            time.sleep(0.01)
+        # the worker solves beside the frames: give it time, then frames must carry the calibration
+        time.sleep(3.0)
+        late = []
+        for j in range(n - 12, n):
+            stamps[j] = harness.send(j, H[j], HomographyStamped.TRACKING, n - 8, f[j])
+            late.append(j)
+
+        # exactly one CameraInfo per input, stamped like the input, P = [K|0], R = I, full size
+        assert set(harness.infos) == set(stamps)
+        assert all(c >= 1 for c in harness.info_count.values())
+        for ns_stamp in stamps:
+            info = harness.infos[ns_stamp]
+            Kmsg = np.array(info.k).reshape(3, 3)
+            P = np.array(info.p).reshape(3, 4)
+            np.testing.assert_allclose(P[:, :3], Kmsg)
+            np.testing.assert_allclose(P[:, 3], 0.0)
+            np.testing.assert_allclose(np.array(info.r).reshape(3, 3), np.eye(3))
+            assert (info.width, info.height) == (WIDTH, HEIGHT)
+            assert info.distortion_model == "plumb_bob" and len(info.d) == 5
+            assert np.all(np.isfinite(Kmsg)) and Kmsg[0, 0] > 0
+        # garbage frames still got a CameraInfo (from the prior / last good K)
+        for j in bad:
+            assert stamps[j] in harness.infos
+        # converged to the true focal within a tight bound
+        errors = [_relative_f_error(harness.infos[stamps[j]], K[j]) for j in late]
+        statuses = {harness.frames[stamps[j]].status for j in late}
+        assert statuses <= {FrameCalibration.CALIBRATING, FrameCalibration.CONVERGED}, statuses
+        assert max(errors) < 0.005, errors
+        pp = np.array([[harness.infos[stamps[j]].k[2], harness.infos[stamps[j]].k[5]] for j in late])
+        assert np.max(np.hypot(pp[:, 0] - K[0, 0, 2], pp[:, 1] - K[0, 1, 2])) < 5.0
+        fc = harness.frames[stamps[late[-1]]]
+        assert 0.0 < fc.sigma_f < 0.05 * fc.fx
+        assert (
+            abs(math.hypot(fc.orientation.x, fc.orientation.y, fc.orientation.z, fc.orientation.w) - 1) < 1e-6
+        )
+        assert fc.encoders.zoom == pytest.approx(f[late[-1]])
+        # the garbage was counted in the diagnostics
+        assert harness.spin_until(lambda: _diag_value(harness.diagnostics, "invalid_homographies") >= 3, 5.0)
+    finally:
+        output += stop(proc)
+    assert (state_dir / "calibration_state.yaml").exists(), output
+    assert "saved the calibration state" in output, output
+
+    # restart on the saved state: the first frame is already calibrated
+    proc = start_calibrator(ns, f"state_dir:={state_dir}", "nominal_hfov_deg:=50.0")
+    try:
+        harness.infos.clear()
+        harness.frames.clear()
+        harness.wait_connected()
+        j = n - 3
+        stamp = harness.send(j, H[j], HomographyStamped.TRACKING, n - 8, f[j])
+        assert harness.frames[stamp].status in (FrameCalibration.CALIBRATING, FrameCalibration.CONVERGED)
+        assert _relative_f_error(harness.infos[stamp], K[j]) < 0.005
+    finally:
+        output = stop(proc)
+        harness.close()
+    assert "restored calibration state" in output, output
+
+
+def test_pan_only_motion_is_reported_degenerate(ros, tmp_path: Path) -> None:
+    ns = "cam_b"
+    proc = start_calibrator("/" + ns, "nominal_hfov_deg:=50.0")
+    harness = _namespaced_harness(ns)
+    try:
+        harness.wait_connected()
+        n = 72
+        K, R, H, f = sequence(n, pan_deg=30.0, tilt_deg=0.0)
+        # constant zoom, pan only
+        K = np.repeat(K[:1], n, axis=0)
+        H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
+        statuses = []
+        for j in range(n):
+            keyframe = j % 6 == 0
+            state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
+            stamp = harness.send(j, H[j], state, j - j % 6, f[0])
+            statuses.append(harness.frames[stamp].status)
+            time.sleep(0.01)
+        time.sleep(1.0)
+        for j in range(n - 6, n):
+            stamp = harness.send(j + 1000, H[j], HomographyStamped.TRACKING, n - 6, f[0])
+            statuses.append(harness.frames[stamp].status)
+        assert statuses[-1] == FrameCalibration.DEGENERATE_MOTION, statuses[-10:]
+        assert FrameCalibration.CONVERGED not in statuses
+        # and it says so with a large uncertainty
+        assert harness.frames[stamp].sigma_f > 0.1 * harness.frames[stamp].fx
+    finally:
+        stop(proc)
+        harness.close()
+
+
+def _namespaced_harness(ns: str) -> Harness:
+    """A Harness whose relative topics resolve in namespace ns (rclpy node namespace)."""
+    harness = Harness.__new__(Harness)
+    node = rclpy.create_node(f"feeder_{ns.strip('/')}", namespace="/" + ns.strip("/"))
+    harness.node = node
+    harness.pub = node.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
+    harness.kf_pub = node.create_publisher(KeyframeMatches, topics.KEYFRAMES, reliable_qos())
+    harness.infos, harness.frames, harness.info_count, harness.diagnostics = {}, {}, {}, []
+    node.create_subscription(CameraInfo, topics.CAMERA_INFO, harness._on_info, reliable_qos())
+    node.create_subscription(FrameCalibration, topics.FRAME_CALIBRATION, harness._on_frame, reliable_qos())
+    node.create_subscription(
+        DiagnosticArray,
+        "/" + ns.strip("/") + topics.DIAGNOSTICS,
+        harness.diagnostics.append,
+        reliable_qos(50),
+    )
+    return harness
+
+
+def _diag_value(arrays: list[DiagnosticArray], key: str) -> float:
+    best = -1.0
+    for array in arrays:
+        for status in array.status:
+            for kv in status.values:
+                if kv.key == key:
+                    with_value = float(kv.value)
+                    best = max(best, with_value)
+    return best
