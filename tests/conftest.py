@@ -1,0 +1,190 @@
+"""Shared pytest fixtures: ROS environment per test module, node processes, short synthetic bags.
+
+Nothing here is autouse: a test asks for what it needs. Node tests set a module-level ROS_DOMAIN_ID
+(each test file its own) and use `ros_env`, which exports it (and LOCALHOST discovery) for the test's
+own rclpy and returns the environment for the node processes it starts.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PANORAMAS = Path(os.environ.get("PTZ_PANORAMAS", "/work/shared/data/panoramas"))
+PYTHON = sys.executable
+
+STUB_CALIBRATOR = '''"""Stand-in for nodes/calibrator.py: one CameraInfo + FrameCalibration per homography."""
+import sys
+
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo
+
+from ptz_selfcal import topics
+from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped
+
+
+class StubCalibrator(Node):
+    def __init__(self):
+        super().__init__("calibrator")
+        self.info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
+        self.frame = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
+        self.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self.on_h, reliable_qos())
+
+    def on_h(self, msg):
+        info = CameraInfo(header=msg.header, width=msg.image_width, height=msg.image_height)
+        f = float(msg.image_width)
+        info.k = [f, 0.0, msg.image_width / 2, 0.0, f, msg.image_height / 2, 0.0, 0.0, 1.0]
+        self.info.publish(info)
+        self.frame.publish(FrameCalibration(header=msg.header, fx=f, fy=f, encoders=msg.encoders))
+
+
+if __name__ == "__main__":
+    sys.exit(run_node(StubCalibrator))
+'''
+
+
+@pytest.fixture
+def ros_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
+    """LOCALHOST discovery and the test module's ROS_DOMAIN_ID, for this process and its children."""
+    domain = getattr(request.module, "ROS_DOMAIN_ID", None)
+    if domain is None:
+        pytest.fail("a test using ros_env must set a module-level ROS_DOMAIN_ID")
+    values = {
+        "ROS_DOMAIN_ID": str(domain),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        "PYTHONUNBUFFERED": "1",
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+    }
+    for key, value in values.items():
+        monkeypatch.setenv(key, value)
+    return dict(os.environ)
+
+
+class NodeProcess:
+    """A child process (node, launch, run) with its output in a file; stop() = SIGINT, wait, kill."""
+
+    def __init__(self, cmd: Sequence[str], env: dict[str, str], log_dir: Path, name: str) -> None:
+        self.cmd = list(cmd)
+        self.log_path = log_dir / f"{name}.log"
+        self._log = open(self.log_path, "w+b")  # noqa: SIM115 (closed in stop)
+        self.proc = subprocess.Popen(self.cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT)
+        self.returncode: int | None = None
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def output(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def wait_for_output(self, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output():
+                return True
+            if not self.alive():
+                return text in self.output()
+            time.sleep(0.05)
+        return False
+
+    def wait(self, timeout: float) -> int | None:
+        try:
+            self.returncode = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
+        return self.returncode
+
+    def stop(self, timeout: float = 10.0, sig: int = signal.SIGINT) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5.0)
+        self.returncode = self.proc.returncode
+        self._log.close()
+        return self.returncode
+
+
+@pytest.fixture
+def start_process(tmp_path: Path) -> Iterator[Callable[..., NodeProcess]]:
+    """start_process(cmd, env, name) -> NodeProcess; every process still running is stopped at teardown."""
+    started: list[NodeProcess] = []
+
+    def start(cmd: Sequence[str], env: dict[str, str], name: str = "proc") -> NodeProcess:
+        proc = NodeProcess(cmd, env, tmp_path, f"{name}-{len(started)}")
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in started:
+        if proc.alive():
+            proc.stop(timeout=5.0)
+
+
+def node_command(module: str, *ros_args: str) -> list[str]:
+    return [PYTHON, "-m", module, "--ros-args", *ros_args]
+
+
+def cli_command(*args: str) -> list[str]:
+    """The `ptz-selfcal` entry point, independent of whether its console script is installed."""
+    return [PYTHON, "-c", "import sys; from ptz_selfcal.tools.cli import main; sys.exit(main())", *args]
+
+
+@pytest.fixture(scope="session")
+def stub_calibrator_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A directory to put on PYTHONPATH that holds `stub_calibrator` (module name)."""
+    directory = tmp_path_factory.mktemp("stub_calibrator")
+    (directory / "stub_calibrator.py").write_text(STUB_CALIBRATOR)
+    return directory
+
+
+def calibrator_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("ptz_selfcal.nodes.calibrator") is not None
+
+
+def make_synth_bag(out: Path, frames: int, width: int, height: int, *extra: str) -> Path:
+    """A bag from `ptz-selfcal synth` (skips the test when the command or the panoramas are missing)."""
+    panorama = PANORAMAS / "building.jpg"
+    if not panorama.exists():
+        pytest.skip(f"panorama {panorama} not available")
+    if not (REPO / "src/ptz_selfcal/ptz_selfcal/tools/synth.py").exists():
+        pytest.skip("ptz-selfcal synth is not available")
+    cmd = cli_command(
+        "synth", str(panorama), str(out), "--frames", str(frames), "--width", str(width),
+        "--height", str(height), "--quiet", *extra,
+    )  # fmt: skip
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    if result.returncode != 0:
+        pytest.fail(f"synth failed: {result.stderr.strip()}")
+    return out
+
+
+@pytest.fixture(scope="session")
+def short_synth_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """40 JPEG frames of 640x360 with encoders and ground truth (about 3 s to make)."""
+    return make_synth_bag(tmp_path_factory.mktemp("synth") / "short", 40, 640, 360)
+
+
+@pytest.fixture
+def scratch_dir() -> Iterator[Path]:
+    with tempfile.TemporaryDirectory(prefix="ptz_selfcal_test_") as tmp:
+        yield Path(tmp)
