@@ -1,0 +1,93 @@
+"""`ptz-selfcal eval` end to end: synth bag -> run (real nodes over DDS) -> report.json, table, plots."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PTZ = [sys.executable, "-m", "ptz_selfcal.tools.cli"]
+PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
+DOMAIN = 160
+
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("ptz_selfcal.tools.run") is None
+    or importlib.util.find_spec("ptz_selfcal.tools.synth") is None
+    or not PANORAMA.exists(),
+    reason="needs ptz-selfcal run and synth and the shared panorama",
+)
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(DOMAIN))
+    return env
+
+
+@pytest.fixture(scope="module")
+def short_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    bag = tmp_path_factory.mktemp("eval") / "short"
+    subprocess.run(
+        [*PTZ, "synth", str(PANORAMA), str(bag), "--frames", "48", "--quiet", "--seed", "3"],
+        check=True,
+        env=_env(),
+        timeout=120,
+    )
+    return bag
+
+
+def test_eval_writes_report_plots_and_table(short_bag: Path, tmp_path: Path) -> None:
+    out = tmp_path / "report"
+    proc = subprocess.run(
+        [*PTZ, "eval", str(short_bag), "--out-dir", str(out), "--quiet"],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["coverage"] == 1.0
+    assert report["frames"]["input"] == 48
+    assert report["frames"]["duplicate_camera_info"] == 0
+    assert report["truth"] == {"intrinsics": "ground truth", "rotations": "ground truth"}
+    late = report["metrics"]["focal_error"]["after_warmup"]
+    assert late["count"] > 0 and late["median"] < 0.01, late  # loose for a 48-frame CI bag
+    assert report["metrics"]["principal_point_error_px"]["after_warmup"]["median"] < 10.0
+    assert report["metrics"]["rotation_error_deg"]["after_warmup"]["median"] < 0.2
+    assert report["performance"]["run_throughput_fps"] > 0
+    for name in ("focal.png", "principal_point.png", "pan_tilt.png"):
+        assert (out / name).stat().st_size > 1000
+    assert "coverage 100.0%" in proc.stdout
+    assert "focal error median (%)" in proc.stdout
+
+    # --no-run evaluates the recorded output bag again: same figures
+    again = tmp_path / "again"
+    proc = subprocess.run(
+        [*PTZ, "eval", str(out / "output_bag"), "--no-run", "--out-dir", str(again), "--no-plots"],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    second = json.loads((again / "report.json").read_text())
+    assert second["coverage"] == 1.0
+    assert second["metrics"]["focal_error"] == report["metrics"]["focal_error"]
+
+
+def test_eval_refuses_a_missing_bag(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [*PTZ, "eval", str(tmp_path / "nope"), "--out-dir", str(tmp_path / "r")],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "no such bag" in proc.stderr
