@@ -1,0 +1,795 @@
+"""Side by side with the peers (issue 8): ptz_selfcal against OpenCV's stitching calibration and the paper.
+
+    ros2_ws/venv/bin/python benchmarks/peers.py [--quick] [--inputs clean,distorted,...] [--out FILE]
+
+Inputs: `ptz-selfcal synth` bags rendered on the fly from /work/shared/data/panoramas into a temporary
+directory (clean; radial distortion; long focal length with small rotations, the near-ambiguity case of
+section 6.2) and the real hand-held sets of /work/shared/data/rotation_sets (focal length compared with
+AutoStitch's, full-resolution f = s * f). OpenCV sees every 5th frame; ptz_selfcal's online row sees
+every frame one by one; the errors of every row are measured on the same frames (every 5th).
+
+Rows per input: OpenCV's stitching pipeline (benchmarks/opencv_peer.py) and its two autocalib helpers
+(ported / corrected) on the tracker's homographies; the paper's methods on the tracker's homographies
+(linear square pixels with the principal point known = image centre and varying; LM eq. 22 with a
+constant and a varying principal point; bundle adjustment MLE eq. 26 and MAP eq. 27 on points
+transferred by those homographies); ptz_selfcal online (HomographyTracker + IncrementalCalibrator).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import opencv_peer
+
+from ptz_selfcal.core import metrics
+from ptz_selfcal.core.features import (
+    match_descriptors,
+    orb_descriptors,
+    robust_homography,
+    usac_params,
+)
+from ptz_selfcal.core.geometry import homography_work_to_full
+from ptz_selfcal.core.intrinsics import (
+    IntrinsicsModel,
+    ParamMode,
+    SelfCalibrationError,
+    image_centre,
+    rotations_from_homographies,
+)
+from ptz_selfcal.core.tracker import (
+    HomographyTracker,
+    KeyframeLink,
+    TrackingState,
+    TrackResult,
+)
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+DATA = Path("/work/shared/data")
+STRIDE = 5  # OpenCV sees every 5th frame (issue 8)
+FPS = 15.0
+BA_POINTS_PER_LINK = 40  # online bundle adjustment: correspondences kept per keyframe link
+BA_ITERATIONS = 10
+# A fixed lens (the real sets): constant unknown focal length and principal point, square pixels.
+FIXED_LENS = IntrinsicsModel(focal=ParamMode.CONSTANT)
+RESULTS = Path(__file__).resolve().parent / "results" / "peers.txt"
+
+
+# --------------------------------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class Sequence:
+    """Frames (mono8, full resolution) and what is known about them."""
+
+    name: str
+    frames: list[np.ndarray]
+    eval_idx: IntArray  # frames every method is evaluated on (and OpenCV is fed)
+    K_true: Array | None = None  # (n, 3, 3)
+    R_true: Array | None = None  # (n, 3, 3) world-to-camera
+    f_reference: float | None = None  # AutoStitch's focal length (real sets)
+    source: str = ""
+    fixed_focal: bool = False  # a fixed lens: photographs, not video (real sets)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        h, w = self.frames[0].shape[:2]
+        return (w, h)
+
+
+@dataclass(frozen=True)
+class SynthSpec:
+    panorama: str
+    hfov_deg: float  # at the wide end
+    zoom_max: float
+    pan_deg: float
+    tilt_deg: float
+    distortion: float = 0.0  # corner shift, fraction of the half-diagonal at the wide end
+    width: int = 1280
+    height: int = 720
+
+
+SYNTH: dict[str, SynthSpec] = {
+    "clean": SynthSpec("building.jpg", 60.0, 2.0, 30.0, 8.0),
+    "distorted": SynthSpec("building.jpg", 60.0, 2.0, 30.0, 8.0, distortion=0.12),
+    "longfocal": SynthSpec("building.jpg", 30.0, 1.6, 3.5, 2.0),
+}
+REAL = ("parrington", "grail", "denny", "weir")
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+def render_sequence(name: str, spec: SynthSpec, n_frames: int, fps: float = FPS) -> Sequence:
+    """Render in-process with core.render (used when the synth command is not installed)."""
+    from ptz_selfcal.core import render
+
+    pano = render.build_panorama(cv2.imread(str(DATA / "panoramas" / spec.panorama), cv2.IMREAD_GRAYSCALE))
+    profile = render.CameraProfile(
+        spec.width,
+        spec.height,
+        period=n_frames / fps,
+        f_wide=render.focal_from_hfov(spec.width, spec.hfov_deg),
+        zoom_max=spec.zoom_max,
+        pan_amplitude=np.radians(spec.pan_deg),
+        tilt_amplitude=np.radians(spec.tilt_deg),
+        corner_shift=spec.distortion,
+    )
+    state = profile.state(np.arange(n_frames) / fps)
+    size = (spec.width, spec.height)
+    frames = [
+        render.render_view(pano, state.K(i), state.R(i), size, float(state.lam[i]) or None)
+        for i in range(n_frames)
+    ]
+    K = np.array([state.K(i) for i in range(n_frames)])
+    R = np.array([state.R(i) for i in range(n_frames)])
+    return Sequence(name, frames, np.arange(0, n_frames, STRIDE), K, R, source="core.render")
+
+
+def load_real_set(name: str) -> Sequence:
+    """A rotation set with AutoStitch's focal length (mean of its per-image full-resolution f)."""
+    folder = DATA / "rotation_sets" / name
+    paths = sorted(p for p in folder.glob("*.jpg"))
+    frames = [_gray(cv2.imread(str(p))) for p in paths]
+    ref = autostitch_focal(folder)
+    source = (
+        f"real hand-held photographs, AutoStitch f = {ref:.1f} px" if ref else "real hand-held photographs"
+    )
+    return Sequence(name, frames, np.arange(len(frames)), f_reference=ref, source=source, fixed_focal=True)
+
+
+def autostitch_focal(folder: Path) -> float | None:
+    """Mean full-resolution f = s * f over the images of autostitch_pano.txt (None without the file)."""
+    path = folder / "autostitch_pano.txt"
+    if not path.exists():
+        return None
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    focals = []
+    # Blocks of 9 non-empty lines: path, "w h", 3 rows of the scale matrix, 3 rows of R, f.
+    for k in range(0, len(lines) - 8, 9):
+        scale = float(lines[k + 2][0])
+        focals.append(scale * float(lines[k + 8][0]))
+    return float(np.mean(focals)) if focals else None
+
+
+# --------------------------------------------------------------------------------------------------
+# Method results
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class MethodResult:
+    method: str
+    online: bool
+    frame_idx: IntArray  # sequence frames with an estimate
+    K: Array  # (m, 3, 3)
+    R: Array  # (m, 3, 3), any common gauge
+    ms_per_frame: float
+    note: str = ""
+    extra: dict = field(default_factory=dict)
+
+
+def failed(method: str, online: bool, note: str) -> MethodResult:
+    empty = np.empty((0, 3, 3))
+    return MethodResult(method, online, np.zeros(0, np.intp), empty, empty, float("nan"), note)
+
+
+# --------------------------------------------------------------------------------------------------
+# OpenCV
+# --------------------------------------------------------------------------------------------------
+def run_opencv(seq: Sequence, features: str) -> MethodResult:
+    images = [seq.frames[i] for i in seq.eval_idx]
+    res = opencv_peer.run_stitching_calibration(images, opencv_peer.OpenCVConfig(features=features))
+    name = f"OpenCV stitching ({features.upper()}, Ray+Reproj BA)"
+    if not res.ok:
+        return failed(name, False, res.message)
+    ms = 1000.0 * res.wall_time / len(images)
+    return MethodResult(name, False, seq.eval_idx[res.indices], res.K, res.R, ms, extra=res.stage_times)
+
+
+# --------------------------------------------------------------------------------------------------
+# ptz_selfcal: tracking (shared by the paper rows and the online row)
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class Tracking:
+    H_ref: list[Array | None]  # per frame: reference -> frame, full resolution (None when lost)
+    reference_id: list[int | None]
+    seconds: float
+    results: list = field(default_factory=list)
+
+
+def working_scale(size: tuple[int, int]) -> float:
+    """The node's working resolution: about 640 pixels wide."""
+    return min(1.0, 640.0 / size[0])
+
+
+def to_working(image: np.ndarray, scale: float) -> np.ndarray:
+    if scale == 1.0:
+        return image
+    h, w = image.shape[:2]
+    return cv2.resize(image, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+
+
+class PhotoTracker:
+    """Front-end for photographs (the real sets; HomographyTracker's KLT expects video): ORB matches and
+    MAGSAC + LM homographies (core.features) between consecutive images, chained to the first image;
+    every image becomes a keyframe linked to its predecessor. Same TrackResult as HomographyTracker."""
+
+    def __init__(self, n_features: int = 2000, ratio: float = 0.8, threshold: float = 2.0) -> None:
+        self._orb = cv2.ORB_create(nfeatures=n_features)
+        self._ratio = ratio
+        self._threshold = threshold
+        self._previous = None  # (frame index, descriptors, H_ref)
+        self._index = -1
+
+    def track(self, image: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
+        self._index += 1
+        i = self._index
+        desc = orb_descriptors(self._orb, image)
+        if self._previous is None:
+            self._previous = (i, desc, np.eye(3))
+            return TrackResult(
+                TrackingState.NEW_KEYFRAME, i, stamp, np.eye(3), np.eye(3), i, 0, 300, 300, 0.0
+            )
+        j, prev, H_prev = self._previous
+        a, b = match_descriptors(prev, desc, self._ratio)
+        params = usac_params(self._threshold * scale, 0, 2000, 0.999)
+        fit = robust_homography(a, b, params, 20, 20)
+        if fit is None:
+            return TrackResult(TrackingState.TRACKING_LOST, i, stamp, None, None, None, 0, 0, len(a), np.nan)
+        H = homography_work_to_full(fit.H, scale)
+        H_ref = H @ H_prev
+        full = (
+            (np.asarray(a, float)[fit.inliers] + 0.5) / scale - 0.5,
+            (np.asarray(b, float)[fit.inliers] + 0.5) / scale - 0.5,
+        )
+        link = KeyframeLink(j, i, H, full[0], full[1], fit.rms / scale)
+        self._previous = (i, desc, H_ref)
+        n_in = int(fit.inliers.sum())
+        return TrackResult(
+            TrackingState.NEW_KEYFRAME, i, stamp, H_ref, H, i, 0, n_in, len(a), fit.rms / scale, (link,)
+        )
+
+
+def track_sequence(seq: Sequence, on_frame: Callable | None = None) -> Tracking:
+    """Feed every frame to the tracker; on_frame(i, image, scale, result) runs inside the timing."""
+    tracker = PhotoTracker() if seq.fixed_focal else HomographyTracker()
+    scale = working_scale(seq.size)
+    H_ref: list[Array | None] = []
+    refs: list[int | None] = []
+    results = []
+    t0 = time.perf_counter()
+    for i, frame in enumerate(seq.frames):
+        work = to_working(frame, scale)
+        result = tracker.track(work, scale, i / FPS)
+        H_ref.append(result.H_ref)
+        refs.append(result.reference_id)
+        results.append(result)
+        if on_frame is not None:
+            on_frame(i, frame, scale, result)
+    return Tracking(H_ref, refs, time.perf_counter() - t0, results)
+
+
+def homographies_at(seq: Sequence, tracking: Tracking) -> tuple[IntArray, Array]:
+    """Evaluation frames tracked against the first map's reference, and their H (reference -> frame).
+
+    The reference frame itself is prepended when it is not an evaluation frame (H = I).
+    """
+    first = next((r for r in tracking.reference_id if r is not None), None)
+    keep = [i for i in seq.eval_idx if tracking.H_ref[i] is not None and tracking.reference_id[i] == first]
+    if first is not None and first not in keep:
+        keep = [first, *keep]
+    idx = np.array(sorted(keep), dtype=np.intp)
+    H = np.array([tracking.H_ref[i] for i in idx]) if len(idx) else np.empty((0, 3, 3))
+    order = np.argsort(idx != first, kind="stable")  # reference first: the solvers expect H[0] = I
+    H = H[order]
+    return idx[order], H / np.cbrt(np.linalg.det(H))[:, None, None]  # unit det (H[2, 2] may be ~0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Rows on the tracker's homographies
+# --------------------------------------------------------------------------------------------------
+def _timed(fn: Callable[[], tuple[Array, Array]]) -> tuple[Array, Array, float]:
+    t0 = time.perf_counter()
+    K, R = fn()
+    return K, R, time.perf_counter() - t0
+
+
+def centred(H: Array, size: tuple[int, int]) -> Array:
+    """Homographies in coordinates centred on the image centre (OpenCV's matcher convention)."""
+    cx, cy = image_centre(size)
+    T = np.array([[1.0, 0.0, -cx], [0.0, 1.0, -cy], [0.0, 0.0, 1.0]])
+    return T @ H @ np.linalg.inv(T)
+
+
+def opencv_focals_from_homography(H: Array, size: tuple[int, int]) -> tuple[Array, Array]:
+    """Per-frame K from the ported focalsFromHomography (f1 of ref -> frame j; pp = centre)."""
+    cx, cy = image_centre(size)
+    f = np.full(len(H), np.nan)
+    f_ref = []
+    for j, Hc in enumerate(centred(H, size)):
+        f0, f1, ok0, ok1 = opencv_peer.focals_from_homography(Hc)
+        if ok1:
+            f[j] = f1
+        if ok0:
+            f_ref.append(f0)
+    if not f_ref:
+        raise SelfCalibrationError("focalsFromHomography found no focal length")
+    f[0] = np.median(f_ref)
+    if not np.isfinite(f).all():
+        raise SelfCalibrationError(f"focalsFromHomography failed on {int((~np.isfinite(f)).sum())} frames")
+    K = np.array([[[fj, 0.0, cx], [0.0, fj, cy], [0.0, 0.0, 1.0]] for fj in f])
+    return K, rotations_from_homographies(H, K)
+
+
+def opencv_calibrate_rotating(H: Array) -> tuple[Array, Array]:
+    """Constant K from cv2.detail.calibrateRotatingCamera with the Cholesky correction."""
+    K = opencv_peer.calibrate_rotating_camera_binding(list(H[1:]))
+    if K is None:
+        raise SelfCalibrationError("calibrateRotatingCamera failed (W not positive definite)")
+    Ks = np.repeat(K[None], len(H), axis=0)
+    return Ks, rotations_from_homographies(H, Ks)
+
+
+def transferred_observations(
+    H: Array, size: tuple[int, int], grid: int = 12
+) -> tuple[IntArray, IntArray, Array]:
+    """BA observations: a grid of every frame mapped into every other frame by the homographies.
+
+    A grid point is a ray; it is observed in its own frame and wherever it lands inside another image.
+    """
+    from ptz_selfcal.core.geometry import pixel_grid
+
+    w, h = size
+    g = pixel_grid(w, h, grid)
+    n, m = len(H), len(g)
+    Hinv = np.linalg.inv(H)
+    frames, rays, xys = [], [], []
+    for a in range(n):
+        M = H @ Hinv[a]  # frame a -> every frame
+        p = np.einsum("nij,mj->nmi", M, np.column_stack([g, np.ones(m)]))
+        xy = p[..., :2] / p[..., 2:3]
+        inside = (p[..., 2] > 0) & (xy[..., 0] >= 0) & (xy[..., 0] <= w - 1) & (xy[..., 1] >= 0)
+        inside &= xy[..., 1] <= h - 1
+        fb, pt = np.nonzero(inside)
+        frames.append(fb)
+        rays.append(a * m + pt)
+        xys.append(xy[fb, pt])
+    return np.concatenate(frames), np.concatenate(rays), np.concatenate(xys)
+
+
+def bundle_rows(H: Array, size: tuple[int, int], init: tuple[Array, Array]) -> dict[str, Callable]:
+    from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior
+
+    obs = transferred_observations(H, size)
+
+    def mle() -> tuple[Array, Array]:
+        r = bundle_adjust(obs, init[0], init[1], size, IntrinsicsModel.square_constant_pp())
+        return r.K, r.R
+
+    def map_() -> tuple[Array, Array]:
+        prior = default_pp_prior(size)
+        r = bundle_adjust(obs, init[0], init[1], size, IntrinsicsModel.square_varying_pp(), pp_prior=prior)
+        return r.K, r.R
+
+    return {"BA MLE eq.26 (const pp)": mle, "BA MAP eq.27 (varying pp, prior)": map_}
+
+
+def paper_rows(seq: Sequence, tracking: Tracking) -> list[MethodResult]:
+    """The paper's methods and OpenCV's autocalib helpers on the same (tracked) homographies."""
+    from ptz_selfcal.core.linear_selfcal import linear_selfcalibration
+    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+
+    idx, H = homographies_at(seq, tracking)
+    size = seq.size
+    track_ms = 1000.0 * tracking.seconds / len(seq.frames)
+    if len(idx) < 3:
+        return [failed("paper methods", False, f"only {len(idx)} tracked evaluation frames")]
+
+    def lin(known: bool) -> Callable:
+        def fn() -> tuple[Array, Array]:
+            r = linear_selfcalibration(H, size, known_principal_point=image_centre(size) if known else None)
+            return r.K, r.R
+
+        return fn
+
+    notes: dict[str, str] = {}
+
+    def lm(name: str, model: IntrinsicsModel) -> tuple[str, Callable]:
+        def fn() -> tuple[Array, Array]:
+            r = lm_selfcalibration(H, size, model)
+            if not r.ok:  # a collapse of f is a failure; a motion flag (section 6) is reported
+                if r.motion is None or r.motion.well_posed:
+                    raise SelfCalibrationError(r.message)
+                notes[name] = f"flagged: {r.motion.status}"
+            return r.K, r.R
+
+        return name, fn
+
+    methods: dict[str, Callable] = {
+        "OpenCV focalsFromHomography (ported)": lambda: opencv_focals_from_homography(H, size),
+        "OpenCV calibrateRotatingCamera (corr.)": lambda: opencv_calibrate_rotating(H),
+        "linear sq.px, known pp=centre (3.3.2)": lin(True),
+        "linear sq.px, varying pp (3.3.2)": lin(False),
+    }
+    lm_models = [
+        ("LM eq.22, constant pp (3.3.1)", IntrinsicsModel.square_constant_pp()),
+        ("LM eq.22, varying pp (3.3.1)", IntrinsicsModel.square_varying_pp()),
+    ]
+    if seq.fixed_focal:
+        lm_models.append(("LM eq.22, constant f+pp (fixed lens)", FIXED_LENS))
+    methods |= dict(lm(name, model) for name, model in lm_models)
+    rows = []
+    lm_init = None
+    for name, fn in methods.items():
+        rows.append(_solve_row(name, fn, idx, track_ms))
+        rows[-1].note = rows[-1].note or notes.get(name, "")
+        if name.startswith("LM eq.22, constant pp") and len(rows[-1].frame_idx):
+            lm_init = (rows[-1].K, rows[-1].R)
+    if lm_init is None:
+        return [*rows, failed("BA MLE / MAP", False, "no LM initialisation")]
+    for name, fn in bundle_rows(H, size, lm_init).items():
+        rows.append(_solve_row(name, fn, idx, track_ms))
+    return rows
+
+
+def _solve_row(name: str, fn: Callable, idx: IntArray, track_ms: float) -> MethodResult:
+    try:
+        K, R, seconds = _timed(fn)
+    except (SelfCalibrationError, np.linalg.LinAlgError, ValueError) as exc:
+        return failed(name, False, str(exc).splitlines()[0][:60])
+    return MethodResult(name, False, idx, K, R, track_ms + 1000.0 * seconds / len(idx))
+
+
+# --------------------------------------------------------------------------------------------------
+# ptz_selfcal online
+# --------------------------------------------------------------------------------------------------
+def _subsample(a: Array, b: Array, count: int) -> tuple[Array, Array]:
+    """At most `count` evenly spread correspondences (bounds the bundle adjustment's cost)."""
+    if len(a) <= count:
+        return a, b
+    keep = np.linspace(0, len(a) - 1, count).round().astype(np.intp)
+    return a[keep], b[keep]
+
+
+def bundle_solver(
+    reference_id: int, *, use_prior: bool = False, per_link: int | None = None, analyse: bool = True
+) -> Callable:
+    """IncrementalCalibrator solver seam: LM on eq. 22, then bundle adjustment (eq. 26) over the
+    keyframes' link correspondences (the tracker's KeyframeLinks attached to each keyframe)."""
+    from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior, pair_observations
+    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+
+    per_link = per_link or BA_POINTS_PER_LINK
+
+    def solve(H, image_size, model, K_init, keyframes, max_nfev):
+        lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max_nfev, analyse=analyse)
+        if not lm.ok:
+            return lm
+        index = {reference_id: 0} | {kf.keyframe_id: k + 1 for k, kf in enumerate(keyframes)}
+        matches, seen = [], set()
+        for kf in keyframes:
+            for link in kf.matches or ():
+                key = (link.source_id, link.target_id)
+                if key in seen or link.source_id not in index or link.target_id not in index:
+                    continue
+                seen.add(key)
+                matches.append(
+                    (index[link.source_id], index[link.target_id], link.source_points, link.target_points)
+                )
+        try:
+            prior = default_pp_prior(image_size) if use_prior else None
+            ba = bundle_adjust(pair_observations(matches), lm.K, lm.R, image_size, model, pp_prior=prior,
+                               max_iterations=BA_ITERATIONS)  # fmt: skip
+        except SelfCalibrationError:
+            return lm
+        if not ba.ok:
+            return lm
+        ba.motion = lm.motion
+        return ba
+
+    return solve
+
+
+def make_calibrator(seq: Sequence, reference_id: int):
+    """The calibrator as the node runs it; a fixed lens (real sets) gets a constant-focal model."""
+    from ptz_selfcal.core.incremental import IncrementalCalibrator
+
+    if seq.fixed_focal:
+        solver = bundle_solver(reference_id, analyse=False)
+        calibrator = IncrementalCalibrator(seq.size, FIXED_LENS, solver=solver, min_keyframes=2)
+    else:
+        calibrator = IncrementalCalibrator(seq.size, solver=bundle_solver(reference_id))
+    calibrator.reference_id = reference_id
+    return calibrator
+
+
+def run_online(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
+    """Frames one by one through HomographyTracker + IncrementalCalibrator (+ BA in the solver seam)."""
+    from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator
+
+    calibrator: IncrementalCalibrator | None = None
+    published: dict[int, tuple[Array, Array]] = {}
+
+    def on_frame(i: int, frame: np.ndarray, scale: float, result) -> None:
+        nonlocal calibrator
+        if result.H_ref is None:
+            return
+        if calibrator is None or result.reference_id != calibrator.reference_id:
+            calibrator = make_calibrator(seq, result.reference_id)
+        new = result.state in (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)
+        if new and result.keyframe_id is not None and result.keyframe_id != result.reference_id:
+            state = calibrator.add_keyframe(result.keyframe_id, result.H_ref, i / FPS, matches=result.links)
+            if seq.fixed_focal and state is CalibrationState.DEGENERATE_MOTION:
+                calibrator.reoptimise()  # a fixed lens is calibrated by pan-only motion too
+        K, R, _ = calibrator.frame_intrinsics(result.H_ref)
+        if calibrator.calibrated:
+            published[i] = (K, R)
+
+    tracking = track_sequence(seq, on_frame)
+    ms = 1000.0 * tracking.seconds / len(seq.frames)
+    name = "ptz_selfcal online (tracker+incremental+BA)"
+    warm = metrics.warmup_frames(len(seq.frames))
+    idx = np.array([i for i in seq.eval_idx if i in published and i >= warm], dtype=np.intp)
+    rows = []
+    if len(idx):
+        K = np.array([published[i][0] for i in idx])
+        R = np.array([published[i][1] for i in idx])
+        rows.append(MethodResult(name, True, idx, K, R, ms, note=f"as published, frames >= {warm}"))
+    else:
+        rows.append(failed(name, True, "never calibrated"))
+    rows.append(final_state_row(seq, tracking, calibrator, ms))
+    return rows, tracking
+
+
+def final_state_row(seq: Sequence, tracking: Tracking, calibrator, ms: float) -> MethodResult:
+    """Every evaluation frame through the calibrator's final state (O(1) per frame, after the run)."""
+    name = "ptz_selfcal final state, all frames"
+    if calibrator is None or not calibrator.calibrated:
+        return failed(name, True, "never calibrated")
+    idx = np.array(
+        [i for i in seq.eval_idx if tracking.H_ref[i] is not None
+         and tracking.reference_id[i] == calibrator.reference_id], dtype=np.intp,
+    )  # fmt: skip
+    KR = [calibrator.frame_intrinsics(tracking.H_ref[i])[:2] for i in idx]
+    K = np.array([k for k, _ in KR])
+    R = np.array([r for _, r in KR])
+    return MethodResult(name, True, idx, K, R, ms, note="end-of-run calibration replayed")
+
+
+# --------------------------------------------------------------------------------------------------
+# Errors and the table
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class Row:
+    input: str
+    method: str
+    online: bool
+    frames: str
+    f_med: float = float("nan")  # percent
+    f_p90: float = float("nan")
+    pp_med: float = float("nan")  # pixels
+    rot_med: float = float("nan")  # degrees
+    ms: float = float("nan")
+    f_vs_autostitch: float = float("nan")  # percent (median over frames)
+    f_vs_opencv: float = float("nan")
+    note: str = ""
+
+
+def evaluate(seq: Sequence, res: MethodResult, f_opencv: float | None) -> Row:
+    n_eval = len(seq.eval_idx)
+    row = Row(
+        seq.name, res.method, res.online, f"{len(res.frame_idx)}/{n_eval}", ms=res.ms_per_frame, note=res.note
+    )
+    if not len(res.frame_idx):
+        return row
+    order = np.argsort(res.frame_idx)
+    idx, K, R = res.frame_idx[order], res.K[order], res.R[order]
+    f = K[:, 0, 0]
+    if seq.K_true is not None:
+        K_true = seq.K_true[idx]
+        e = 100.0 * metrics.focal_errors(f, K_true[:, 0, 0])
+        row.f_med, row.f_p90 = float(np.median(e)), float(np.percentile(e, 90))
+        row.pp_med = float(np.median(metrics.principal_point_errors(K[:, :2, 2], K_true[:, :2, 2])))
+    if seq.R_true is not None and len(idx) > 1:
+        pairs = np.array([(a, b) for a in range(len(idx)) for b in range(a + 1, len(idx))])
+        rot = metrics.pairwise_rotation_errors(R, seq.R_true[idx], pairs)
+        row.rot_med = float(np.degrees(np.median(rot)))
+    if seq.f_reference is not None:
+        row.f_vs_autostitch = float(np.median(100.0 * np.abs(f - seq.f_reference) / seq.f_reference))
+    if f_opencv is not None and not res.method.startswith("OpenCV stitching"):
+        row.f_vs_opencv = float(np.median(100.0 * np.abs(f - f_opencv) / f_opencv))
+    return row
+
+
+def _fmt(value: float, spec: str) -> str:
+    return "-" if not np.isfinite(value) else format(value, spec)
+
+
+HEADER = (
+    f"{'input':<11} {'method':<44} {'online':<6} {'frames':>7} {'f med%':>8} {'f p90%':>8} {'pp px':>7} "
+    f"{'rot deg':>8} {'ms/frame':>9} {'f-AS %':>7} {'f-OCV %':>7}  note"
+)
+
+
+def format_row(r: Row) -> str:
+    return (
+        f"{r.input:<11} {r.method[:44]:<44} {'yes' if r.online else 'no':<6} {r.frames:>7} "
+        f"{_fmt(r.f_med, '.3f'):>8} {_fmt(r.f_p90, '.3f'):>8} {_fmt(r.pp_med, '.2f'):>7} "
+        f"{_fmt(r.rot_med, '.4f'):>8} {_fmt(r.ms, '.1f'):>9} {_fmt(r.f_vs_autostitch, '.2f'):>7} "
+        f"{_fmt(r.f_vs_opencv, '.2f'):>7}  {r.note}"
+    ).rstrip()
+
+
+def target_lines(rows: list[Row]) -> list[str]:
+    """The issue's targets, checked on the measured rows."""
+    out = []
+    by_input: dict[str, dict[str, Row]] = {}
+    for r in rows:
+        by_input.setdefault(r.input, {})[r.method] = r
+    for name, group in by_input.items():
+        ocv = next((r for m, r in group.items() if m.startswith("OpenCV stitching")), None)
+        ours = next((r for r in group.values() if r.online), None)
+        if ocv is None or ours is None:
+            continue
+        speed = (
+            ocv.ms / ours.ms if np.isfinite(ocv.ms) and np.isfinite(ours.ms) and ours.ms > 0 else float("nan")
+        )
+        line = f"{name}: speed-up {speed:.0f}x (target >= 100x)"
+        if name.startswith("clean") or name.startswith("longfocal"):
+            gap = ours.f_p90 - ocv.f_p90
+            line += f"; focal p90 ours - OpenCV = {gap:+.3f} points (target <= +0.1)"
+        elif name.startswith("distorted"):
+            ratio = ours.f_p90 / ocv.f_p90 if ocv.f_p90 > 0 else float("nan")
+            line += f"; focal p90 ours / OpenCV = {ratio:.2f} (target <= 0.5)"
+        if np.isfinite(ours.f_vs_autostitch):
+            line += f"; focal vs AutoStitch {ours.f_vs_autostitch:.2f}% (target <= 2%)"
+        out.append(line)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------------------
+def load_input(name: str, quick: bool, workdir: Path) -> Sequence:
+    if name in REAL:
+        return load_real_set(name)
+    n_frames = 40 if quick else 150
+    return synth_sequence(name, SYNTH[name], n_frames, workdir)
+
+
+def synth_sequence(name: str, spec: SynthSpec, n_frames: int, workdir: Path) -> Sequence:
+    """A `ptz-selfcal synth` bag read back (in-process rendering when the command is not there)."""
+    try:
+        from ptz_selfcal.tools import synth  # noqa: F401
+    except ImportError:
+        return render_sequence(name, spec, n_frames)
+    return synth_bag_sequence(name, spec, n_frames, workdir)
+
+
+def synth_bag_sequence(name: str, spec: SynthSpec, n_frames: int, workdir: Path) -> Sequence:
+    """Render with `ptz-selfcal synth` into workdir and read images and ground truth back."""
+    bag = workdir / name
+    pano = str(DATA / "panoramas" / spec.panorama)
+    options = {
+        "frames": n_frames, "width": spec.width, "height": spec.height, "fps": FPS, "hfov": spec.hfov_deg,
+        "zoom-max": spec.zoom_max, "pan-amplitude": spec.pan_deg, "tilt-amplitude": spec.tilt_deg,
+        "distortion": spec.distortion, "jobs": 2,
+    }  # fmt: skip
+    cmd = [sys.executable, "-m", "ptz_selfcal.tools.cli", "synth", pano, str(bag), "--quiet"]
+    cmd += [item for key, value in options.items() for item in (f"--{key}", str(value))]
+    subprocess.run(cmd, check=True)
+    frames, K, R = read_synth_bag(bag)
+    args = " ".join(cmd[4:]).replace(str(DATA / "panoramas") + "/", "").replace(str(workdir) + "/", "")
+    return Sequence(name, frames, np.arange(0, len(frames), STRIDE), K, R, source=f"ptz-selfcal synth {args}")
+
+
+def read_synth_bag(bag: Path) -> tuple[list[np.ndarray], Array, Array]:
+    """(mono8 frames, true K (n, 3, 3), true world-to-camera R (n, 3, 3)) in image order."""
+    from ptz_selfcal import topics
+    from ptz_selfcal.core.geometry import ptz_rotation
+    from ptz_selfcal.tools.bagio import BagReader, deserialize
+
+    images: dict[int, np.ndarray] = {}
+    K: dict[int, Array] = {}
+    R: dict[int, Array] = {}
+    with BagReader(bag) as reader:
+        for m in reader.messages():
+            msg = deserialize(m.raw, m.msgtype)
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            if m.topic == topics.bag_topic(topics.IMAGE_COMPRESSED):
+                images[stamp] = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+            elif m.topic == topics.bag_topic(topics.IMAGE_RAW):
+                images[stamp] = _gray(_raw_image(msg))
+            elif m.topic == topics.bag_topic(topics.GT_CAMERA_INFO):
+                K[stamp] = np.asarray(msg.k, dtype=float).reshape(3, 3)
+            elif m.topic == topics.bag_topic(topics.GT_JOINT_STATES):
+                joints = dict(zip(msg.name, msg.position))
+                R[stamp] = ptz_rotation(joints["pan"], joints["tilt"])
+    stamps = sorted(images)
+    return [images[t] for t in stamps], np.array([K[t] for t in stamps]), np.array([R[t] for t in stamps])
+
+
+def _raw_image(msg) -> np.ndarray:
+    data = np.asarray(msg.data, np.uint8)
+    channels = 1 if msg.encoding == "mono8" else 3
+    image = data.reshape(msg.height, msg.step)[:, : msg.width * channels].reshape(msg.height, msg.width, -1)
+    if msg.encoding == "rgb8":
+        image = image[..., ::-1]
+    return np.ascontiguousarray(image.squeeze())
+
+
+def run_input(seq: Sequence, features: str, log: Callable[[str], None]) -> list[Row]:
+    online, tracking = run_online(seq)
+    log(f"  [{seq.name}] tracked {len(seq.frames)} frames in {tracking.seconds:.1f} s")
+    ocv = run_opencv(seq, features)
+    log(f"  [{seq.name}] OpenCV: {ocv.ms_per_frame:.0f} ms/frame {ocv.note}")
+    results = [ocv, *paper_rows(seq, tracking), *online]
+    f_ocv = float(np.median(ocv.K[:, 0, 0])) if len(ocv.frame_idx) and seq.K_true is None else None
+    return [evaluate(seq, r, f_ocv) for r in results]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="short sequences (40 frames instead of 150)")
+    parser.add_argument("--inputs", default=",".join([*SYNTH, *REAL]), help="comma-separated input names")
+    parser.add_argument("--features", default="sift", choices=("sift", "orb"), help="OpenCV feature finder")
+    parser.add_argument("--out", type=Path, default=None, help=f"write the table here (full run: {RESULTS})")
+    args = parser.parse_args(argv)
+    names = [n.strip() for n in args.inputs.split(",") if n.strip()]
+    unknown = [n for n in names if n not in SYNTH and n not in REAL]
+    if unknown:
+        parser.error(f"unknown inputs {unknown}; choose from {[*SYNTH, *REAL]}")
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    rows: list[Row] = []
+    sources = []
+    with tempfile.TemporaryDirectory(prefix="peers_") as tmp:
+        for name in names:
+            seq = load_input(name, args.quick, Path(tmp))
+            sources.append(f"{name}: {seq.source}, {len(seq.frames)} frames {seq.size[0]}x{seq.size[1]}")
+            rows += run_input(seq, args.features, log)
+    text = report(rows, sources, args)
+    print(text)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+def report(rows: list[Row], sources: list[str], args: argparse.Namespace) -> str:
+    cmd = "ros2_ws/venv/bin/python benchmarks/peers.py " + " ".join(sys.argv[1:])
+    lines = [
+        f"$ {cmd.strip()}",
+        "Errors on every 5th frame (real sets: every frame); f = fx; rotation = median pairwise |angle| "
+        "difference (DESIGN.md 7); ms/frame = wall time / frames the method consumed (OpenCV: every 5th "
+        "frame; ptz_selfcal: every frame; batch rows: tracking per frame + solve per evaluated frame).",
+        *sources,
+        "",
+        HEADER,
+        *[format_row(r) for r in rows],
+        "",
+        *target_lines(rows),
+        "",
+        opencv_peer.PORT_NOTE,
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
