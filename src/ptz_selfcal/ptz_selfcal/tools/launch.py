@@ -3,9 +3,10 @@
 Each node (frame_ingest, homography_tracker, calibrator) runs as `python -m ptz_selfcal.nodes.<name>
 --ros-args -r __node:=<name> [-r __ns:=NS] --params-file FILE [-r FROM:=TO ...]`. Their output is
 prefixed with the node name. A node that dies unexpectedly is restarted with exponential backoff
-(counted and logged); a node that exits with status 2 (its configuration error) or dies within its first
-seconds stops the suite with that node's message. Ctrl-C/SIGTERM stops every child cleanly: SIGINT, wait,
-then SIGTERM and SIGKILL after timeouts; the supervisor exits 0. Children get SIGTERM from the kernel if
+(counted and logged); a node that exits with status 2 (its configuration error) or with an error status
+within its first seconds (e.g. it cannot be imported) stops the suite with that node's message.
+Ctrl-C/SIGTERM stops every child cleanly: SIGINT, wait, then SIGTERM and SIGKILL after timeouts; the
+supervisor exits 0. Children get SIGTERM from the kernel if
 the supervisor itself is killed (PR_SET_PDEATHSIG), so no orphan survives it.
 
 The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
@@ -278,7 +279,9 @@ class Supervisor:
             lived = now - child.started
             child.process = None
             last = next((line for line in reversed(child.tail) if line.strip()), "")
-            if code == CONFIG_ERROR_STATUS or (child.starts == 1 and lived < self.startup_grace):
+            # Its configuration error, or an error exit (not a signal) right after the first start (e.g. the
+            # module cannot be imported): restarting cannot help. Anything else is restarted.
+            if code == CONFIG_ERROR_STATUS or (code > 0 and child.starts == 1 and lived < self.startup_grace):
                 self.fatal = f"{child.spec.name} exited with status {code} at start-up" + (
                     f": {last}" if last else ""
                 )
@@ -337,6 +340,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="start only these nodes (default: all three)",
     )
     parser.add_argument("--stop-timeout", type=float, default=5.0, help="seconds to wait after SIGINT")
+    # Tests (and experiments) may replace a node's module: --node-module calibrator=my_package.my_node
+    parser.add_argument(
+        "--node-module", action="append", default=[], metavar="NAME=MODULE", help=argparse.SUPPRESS
+    )
 
 
 def prepare(
@@ -353,7 +360,15 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--stop-timeout must be > 0")
     with tempfile.TemporaryDirectory(prefix="ptz_selfcal_launch_") as tmp:
         params_file, namespace, remaps = prepare(args.params, args.namespace, args.remap, tmp)
-        specs = [NodeSpec(name, NODE_MODULES[name]) for name in args.nodes]
+        modules = dict(NODE_MODULES)
+        for item in args.node_module:
+            name, sep, module = item.partition("=")
+            if not sep or name not in modules or not module:
+                raise CliError(
+                    f"--node-module wants NAME=MODULE with NAME in {', '.join(modules)}, got {item!r}"
+                )
+            modules[name] = module
+        specs = [NodeSpec(name, modules[name]) for name in args.nodes]
         supervisor = Supervisor(specs, params_file, namespace, remaps)
         stop = threading.Event()
 
