@@ -36,8 +36,6 @@ import opencv_peer
 
 from ptz_selfcal.core import metrics
 from ptz_selfcal.core.features import (
-    match_descriptors,
-    orb_descriptors,
     robust_homography,
     usac_params,
 )
@@ -238,14 +236,15 @@ class PhotoTracker:
     def track(self, image: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
         self._index += 1
         i = self._index
-        desc = orb_descriptors(self._orb, image)
+        keypoints, descriptors = self._orb.detectAndCompute(image, None)
+        desc = (np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2), descriptors)
         if self._previous is None:
             self._previous = (i, desc, np.eye(3))
             return TrackResult(
                 TrackingState.NEW_KEYFRAME, i, stamp, np.eye(3), np.eye(3), i, 0, 300, 300, 0.0
             )
         j, prev, H_prev = self._previous
-        a, b = match_descriptors(prev, desc, self._ratio)
+        a, b = ratio_matches(prev, desc, self._ratio)
         params = usac_params(self._threshold * scale, 0, 2000, 0.999)
         fit = robust_homography(a, b, params, 20, 20)
         if fit is None:
@@ -262,6 +261,17 @@ class PhotoTracker:
         return TrackResult(
             TrackingState.NEW_KEYFRAME, i, stamp, H_ref, H, i, 0, n_in, len(a), fit.rms / scale, (link,)
         )
+
+
+def ratio_matches(a: tuple, b: tuple, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points of a and b whose ORB descriptors are nearest neighbours passing Lowe's ratio test."""
+    if a[1] is None or b[1] is None or len(a[0]) < 2 or len(b[0]) < 2:
+        return np.empty((0, 2), np.float32), np.empty((0, 2), np.float32)
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a[1], b[1], k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    ia = np.array([m.queryIdx for m in good], np.intp)
+    ib = np.array([m.trainIdx for m in good], np.intp)
+    return a[0][ia], b[0][ib]
 
 
 def track_sequence(seq: Sequence, on_frame: Callable | None = None) -> Tracking:
