@@ -352,8 +352,9 @@ def run_pipeline(in_bag: Path, out_bag: Path, params: str | None, quiet: bool, e
     if status:
         raise CliError(f"run failed with status {status}")
     text = "".join(tee.parts)
-    match = re.search(r"([\d.]+) frames/s", text)
-    return {"wall_s": wall, "throughput_fps": float(match.group(1)) if match else None}
+    # the summary line ("run: N/M images got a CameraInfo ... X frames/s ...") is the last rate printed
+    rates = re.findall(r"got a CameraInfo.*?([\d.]+) frames/s", text)
+    return {"wall_s": wall, "throughput_fps": float(rates[-1]) if rates else None}
 
 
 def run(args: argparse.Namespace) -> int:
