@@ -97,7 +97,7 @@ def track_klt(
     )  # fmt: skip
     # Backward pass from the forward result, seeded at the start point: a cheap consistency test.
     back, st_back, _ = cv2.calcOpticalFlowPyrLK(
-        current, previous, p1, p0.copy(), winSize=win, maxLevel=1, criteria=criteria,
+        current, previous, p1, p0.copy(), winSize=win, maxLevel=0, criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW, minEigThreshold=params.min_eigenvalue,
     )  # fmt: skip
     p1 = p1.reshape(-1, 2)
@@ -138,7 +138,7 @@ def robust_homography(
     dst: np.ndarray,
     params: cv2.UsacParams,
     min_inliers: int,
-    refine_iterations: int = 20,
+    refine_iterations: int = 10,
     sigma_factor: float = 4.0,
 ) -> RobustFit | None:
     """MAGSAC homography src -> dst, then LM on the transfer error of the inliers (section 4.2),
@@ -156,41 +156,60 @@ def robust_homography(
     inliers = mask.ravel().astype(bool)
     if inliers.sum() < min_inliers:
         return None
-    for _ in range(3):
-        H = refine_homography(H, src64[inliers], dst64[inliers], max_nfev=refine_iterations)
-        residual = np.linalg.norm(apply_homography(H, src64) - dst64, axis=1)
-        # Adaptive cut-off: sigma from the MAD of the inliers, so points biased by a partly occluded
-        # window (within the MAGSAC threshold but far out of the noise) stop pulling the fit.
-        sigma = 1.4826 * float(np.median(residual[inliers]))
-        cutoff = min(params.threshold, max(sigma_factor * sigma, 0.1 * params.threshold))
-        updated = residual < cutoff
-        if updated.sum() < min_inliers:
+    inliers = _adaptive_inliers(H, src64, dst64, inliers, params.threshold, sigma_factor)
+    for _ in range(2):  # LM on the inliers; once more if that changed the inlier set
+        if inliers.sum() < min_inliers:
             return None
-        if np.array_equal(updated, inliers):
+        H = refine_homography(H, src64[inliers], dst64[inliers], max_nfev=refine_iterations)
+        updated = _adaptive_inliers(H, src64, dst64, inliers, params.threshold, sigma_factor)
+        if np.array_equal(updated, inliers) or updated.sum() < min_inliers:
             break
         inliers = updated
+    residual = np.linalg.norm(apply_homography(H, src64) - dst64, axis=1)
     rms = float(np.sqrt(np.mean(residual[inliers] ** 2)))
     return RobustFit(H=H, inliers=inliers, rms=rms)
+
+
+def _adaptive_inliers(
+    H: Array, src: Array, dst: Array, inliers: NDArray[np.bool_], threshold: float, sigma_factor: float
+) -> NDArray[np.bool_]:
+    """Inliers at sigma_factor robust sigmas (MAD of the current inliers' residuals), capped by the
+    MAGSAC threshold: tracks biased by a partly occluded window (within the threshold but far out of
+    the noise) stop pulling the fit."""
+    residual = np.linalg.norm(apply_homography(H, src) - dst, axis=1)
+    sigma = 1.4826 * float(np.median(residual[inliers]))
+    return residual < min(threshold, max(sigma_factor * sigma, 0.1 * threshold))
 
 
 @dataclass(frozen=True)
 class Descriptors:
     points: Points  # (N, 2) keypoint positions, working pixels
-    descriptors: np.ndarray | None  # (N, 32) uint8 ORB descriptors
+    descriptors: np.ndarray | None  # ORB (N, 32) uint8 or SIFT (N, 128) float32
+    norm: int = cv2.NORM_HAMMING
 
 
-def orb_descriptors(orb: cv2.ORB, image: np.ndarray) -> Descriptors:
-    keypoints, descriptors = orb.detectAndCompute(image, None)
+def descriptor_extractor(kind: str, count: int) -> cv2.Feature2D:
+    """ORB (fast, binary) or SIFT (slower, matches across larger viewpoint and scale changes)."""
+    if kind == "orb":
+        return cv2.ORB_create(nfeatures=count, scaleFactor=1.2, nlevels=8, fastThreshold=10)
+    if kind == "sift":
+        return cv2.SIFT_create(nfeatures=count)
+    raise ValueError(f"unknown descriptor {kind!r} (orb or sift)")
+
+
+def compute_descriptors(extractor: cv2.Feature2D, image: np.ndarray) -> Descriptors:
+    keypoints, descriptors = extractor.detectAndCompute(image, None)
     points = np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2)
-    return Descriptors(points=points, descriptors=descriptors)
+    norm = cv2.NORM_L2 if descriptors is not None and descriptors.dtype == np.float32 else cv2.NORM_HAMMING
+    return Descriptors(points=points, descriptors=descriptors, norm=norm)
 
 
 def match_descriptors(a: Descriptors, b: Descriptors, ratio: float) -> tuple[Points, Points]:
-    """Mutual nearest neighbours in Hamming distance passing Lowe's ratio test: (points in a, in b)."""
+    """Mutual nearest neighbours in descriptor distance passing Lowe's ratio test: (points in a, in b)."""
     empty = (np.empty((0, 2), np.float32), np.empty((0, 2), np.float32))
     if a.descriptors is None or b.descriptors is None or len(a.points) < 2 or len(b.points) < 2:
         return empty
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    matcher = cv2.BFMatcher(a.norm)
     forward = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
     backward = matcher.match(b.descriptors, a.descriptors)
     best_back = np.full(len(b.points), -1)

@@ -25,9 +25,10 @@ from ptz_selfcal.core.features import (
     Descriptors,
     KltParams,
     RobustFit,
+    compute_descriptors,
+    descriptor_extractor,
     detect_corners,
     match_descriptors,
-    orb_descriptors,
     robust_homography,
     track_klt,
     usac_params,
@@ -67,7 +68,7 @@ class TrackerConfig:
     ransac_threshold: float = 1.0  # full-resolution pixels
     ransac_max_iterations: int = 1000
     ransac_confidence: float = 0.999
-    refine_iterations: int = 20
+    refine_iterations: int = 10
     min_inliers: int = 20
     min_inlier_ratio: float = 0.25
     textured_min_corners: int = 30  # fewer detectable corners than this -> TEXTURELESS
@@ -77,12 +78,14 @@ class TrackerConfig:
     link_min_overlap: float = 0.5  # older keyframes overlapping this much are link candidates
     link_max_deviation: float = 8.0  # full-res px a link may differ from the tracked chain
     link_candidates: int = 2  # older keyframes re-matched per new keyframe (besides the previous one)
+    link_with_descriptors: bool = False  # always start links from ORB matches (else only as fallback)
     max_keyframes: int = 64  # keyframe store cap (oldest pruned; the reference is kept)
-    orb_features: int = 800
+    descriptor: str = "orb"  # re-matching/relocalisation descriptor: "orb" or "sift"
+    descriptor_features: int = 800
     descriptor_ratio: float = 0.8
     relocalise_candidates: int = 6  # keyframes tried per lost frame
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
-    repeat_threshold: float = 0.5  # re-warp and re-track when the prediction was off by more (full px)
+    repeat_threshold: float = 5.0  # re-warp and re-track when the prediction was off by more (full px)
     gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
     seed: int = 0
 
@@ -126,7 +129,7 @@ class Keyframe:
     H_ref: Array  # reference -> keyframe, full resolution
     depth: int  # keyframe links between the reference and this keyframe
     corners: Points  # corners detected in the keyframe (working pixels)
-    descriptors: Descriptors
+    descriptors: Descriptors | None  # computed on first use
 
 
 @dataclass
@@ -146,7 +149,7 @@ class HomographyTracker:
         c = self.config
         self._klt = KltParams(window=c.klt_window, levels=c.klt_levels, iterations=c.klt_iterations,
                               epsilon=c.klt_epsilon, fb_threshold=c.klt_fb_threshold)  # fmt: skip
-        self._orb = cv2.ORB_create(nfeatures=c.orb_features, scaleFactor=1.2, nlevels=8, fastThreshold=10)
+        self._extractor = descriptor_extractor(c.descriptor, c.descriptor_features)
         self.reset()
 
     # ------------------------------------------------------------------ public API
@@ -160,6 +163,7 @@ class HomographyTracker:
         self._frame_index = -1
         self._lost_frames = 0
         self._lost = False
+        self._frame_orb: tuple[int, Descriptors] | None = None
 
     def keyframes(self) -> dict[int, Array]:
         """Stored keyframes of the current map: id -> H (reference -> keyframe, full resolution)."""
@@ -277,9 +281,10 @@ class HomographyTracker:
         """As _gain_matched, with the means taken where the warped keyframe has data (not the border)."""
         if not self.config.gain_compensation:
             return warped
-        valid = (warped > 0).view(np.uint8)
-        mean_warp = float(cv2.mean(warped, mask=valid)[0])
-        mean_cur = float(cv2.mean(image, mask=valid)[0])
+        sub_warp, sub_image = warped[::4, ::4], image[::4, ::4]  # a 1/16 sample is plenty for a gain
+        valid = sub_warp > 0
+        mean_warp = float(sub_warp[valid].mean()) if valid.any() else 0.0
+        mean_cur = float(sub_image[valid].mean()) if valid.any() else 0.0
         if mean_warp < 1.0 or abs(mean_cur / mean_warp - 1.0) < 0.02:
             return warped
         return cv2.convertScaleAbs(warped, alpha=mean_cur / mean_warp)
@@ -322,22 +327,21 @@ class HomographyTracker:
                 reference_id=self._reference_id, inlier_count=int(fit.inliers.sum()),
                 match_count=match_count, rms_transfer_error=fit.rms / self._scale,
             )  # fmt: skip
-        descriptors = orb_descriptors(self._orb, image)
+        # The tracked fit is the parent link: its inliers were measured against the (warped) parent.
+        tracks = self._tracks
+        links = [(parent, fit, self._make_link(parent, fit, tracks.in_keyframe, tracks.current))]
         H_ref_guess = homography_work_to_full(fit.H, self._scale) @ parent.H_ref
-        guesses = [
-            (parent, fit.H, fit.H),
-            *self._older_candidates(image, H_ref_guess, descriptors, parent.id),
-        ]
-        result = self._commit_keyframe(image, stamp, corners, descriptors, guesses,
-                                       TrackingState.NEW_KEYFRAME, fit, match_count)  # fmt: skip
-        assert result is not None  # the tracked fit is the fallback link
-        return result
+        for kf, H_chain in self._older_candidates(image, H_ref_guess, parent.id):
+            linked = self._link(kf, image, corners, H_chain)
+            if linked is not None:
+                links.append(linked)
+        return self._commit_keyframe(image, stamp, corners, links, TrackingState.NEW_KEYFRAME, match_count)
 
     def _older_candidates(
-        self, image: np.ndarray, H_ref_guess: Array, descriptors: Descriptors, exclude: int
-    ) -> list[tuple[Keyframe, Array, Array]]:
-        """Older keyframes overlapping the new one, fewest hops to the reference first, with an
-        initial keyframe -> frame homography re-matched from descriptors (working pixels)."""
+        self, image: np.ndarray, H_ref_guess: Array, exclude: int
+    ) -> list[tuple[Keyframe, Array]]:
+        """Older keyframes overlapping the new frame, fewest hops to the reference first, each with the
+        keyframe -> frame homography predicted through the chain (working pixels)."""
         c = self.config
         S = work_from_full(self._scale)
         scored = []
@@ -348,58 +352,80 @@ class HomographyTracker:
             overlap = _overlap(np.linalg.inv(H_work), image.shape)
             if overlap >= c.link_min_overlap:
                 scored.append((kf.depth, -overlap, kf.id, kf, H_work))
-        scored.sort(key=lambda s: s[:3])
-        out = []
-        for *_, kf, H_work in scored[: c.link_candidates]:
-            src, dst = match_descriptors(kf.descriptors, descriptors, c.descriptor_ratio)
-            fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
-            out.append((kf, fit.H if fit is not None else H_work, H_work))
-        return out
+        scored.sort(key=lambda item: item[:3])
+        return [(kf, H_work) for *_, kf, H_work in scored[: c.link_candidates]]
+
+    def _link(
+        self, kf: Keyframe, image: np.ndarray, corners: Points, H_chain: Array
+    ) -> tuple[Keyframe, RobustFit, KeyframeLink] | None:
+        """Re-measure keyframe -> frame independently of the chain: photometrically from the chain's
+        prediction, else from ORB descriptor matches; reject a link that contradicts the chain."""
+        c = self.config
+        starts = [] if c.link_with_descriptors else [H_chain]
+        H_desc = self._descriptor_homography(kf, image) if c.link_with_descriptors else None
+        starts += [H_desc] if H_desc is not None else []
+        for attempt in range(2):
+            for H0 in starts:
+                if _deviation(H0, H_chain, image.shape) > self._link_tolerance():
+                    continue
+                refined = self._photometric_link(kf, image, corners, H0)
+                if refined is None:
+                    continue
+                fit, src, dst = refined
+                if _deviation(fit.H, H_chain, image.shape) > self._link_tolerance():
+                    _LOG.debug("link %d -> frame %d contradicts the chain: dropped", kf.id, self._frame_index)
+                    continue
+                return kf, fit, self._make_link(kf, fit, src, dst)
+            if attempt == 0 and not c.link_with_descriptors:
+                H_desc = self._descriptor_homography(kf, image)  # photometric start failed: re-match
+                starts = [H_desc] if H_desc is not None else []
+        return None
+
+    def _descriptor_homography(self, kf: Keyframe, image: np.ndarray) -> Array | None:
+        """Keyframe -> frame homography (working pixels) from ORB matches, or None."""
+        c = self.config
+        src, dst = match_descriptors(
+            self._descriptors_of(kf), self._frame_descriptors(image), c.descriptor_ratio
+        )
+        fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
+        if fit is None or not _plausible(fit.H, image.shape):
+            return None
+        return fit.H
+
+    def _descriptors_of(self, kf: Keyframe) -> Descriptors:
+        """Descriptors of a keyframe, computed once on first use (relocalisation, re-matching)."""
+        if kf.descriptors is None:
+            kf.descriptors = compute_descriptors(self._extractor, kf.image)
+        return kf.descriptors
+
+    def _frame_descriptors(self, image: np.ndarray) -> Descriptors:
+        """Descriptors of the current frame (cached for the frame being processed)."""
+        if self._frame_orb is None or self._frame_orb[0] != self._frame_index:
+            self._frame_orb = (self._frame_index, compute_descriptors(self._extractor, image))
+        return self._frame_orb[1]
 
     def _commit_keyframe(
         self,
         image: np.ndarray,
         stamp: float | None,
         corners: Points,
-        descriptors: Descriptors,
-        guesses: list[tuple[Keyframe, Array, Array | None]],
+        links: list[tuple[Keyframe, RobustFit, KeyframeLink]],
         state: TrackingState,
-        fit: RobustFit | None,
         match_count: int,
-    ) -> TrackResult | None:
-        """Store the frame as a keyframe chained through its best link; None if no link holds."""
-        links, best = [], None
-        for kf, H0, expected in guesses:
-            refined = self._photometric_link(kf, image, corners, H0)
-            if refined is None:
-                continue
-            link_fit, src, dst = refined
-            if (
-                expected is not None
-                and _deviation(link_fit.H, expected, image.shape) > self._link_tolerance()
-            ):
-                _LOG.debug("link %d -> frame %d disagrees with tracking: dropped", kf.id, self._frame_index)
-                continue
-            link = self._make_link(kf, link_fit, src, dst)
-            links.append(link)
-            if best is None or (kf.depth, -link_fit.inliers.sum()) < (best[0].depth, -best[1].inliers.sum()):
-                best = (kf, link_fit, link)
-        if best is None:
-            if fit is None:
-                return None
-            best_parent, H_link = guesses[0][0], homography_work_to_full(fit.H, self._scale)
-            depth, rms, inliers = best_parent.depth + 1, fit.rms / self._scale, int(fit.inliers.sum())
-        else:
-            best_parent, H_link = best[0], best[2].H
-            depth, rms, inliers = best_parent.depth + 1, best[2].rms_transfer_error, best[2].inlier_count
-        H_ref = H_link @ best_parent.H_ref
-        keyframe = self._add_keyframe(image, stamp, H_ref, depth, corners, descriptors)
-        links = [replace(link, target_id=keyframe.id) for link in links]
+    ) -> TrackResult:
+        """Store the frame as a keyframe, chained through the link with the fewest hops to the reference."""
+        source, _, best = min(links, key=lambda item: (item[0].depth, -item[2].inlier_count))
+        H_ref = best.H @ source.H_ref
+        descriptors = (
+            self._frame_orb[1] if self._frame_orb and self._frame_orb[0] == self._frame_index else None
+        )
+        keyframe = self._add_keyframe(image, stamp, H_ref, source.depth + 1, corners, descriptors)
         self._lost, self._lost_frames = False, 0
         return TrackResult(
             state=state, frame_index=self._frame_index, stamp=stamp, H_ref=H_ref, H_keyframe=np.eye(3),
-            keyframe_id=keyframe.id, reference_id=self._reference_id, inlier_count=inliers,
-            match_count=match_count, rms_transfer_error=rms, links=tuple(links),
+            keyframe_id=keyframe.id, reference_id=self._reference_id, inlier_count=best.inlier_count,
+            match_count=match_count, rms_transfer_error=best.rms_transfer_error,
+            links=tuple(replace(link, target_id=keyframe.id) for _, _, link in links),
         )  # fmt: skip
 
     def _photometric_link(
@@ -429,9 +455,12 @@ class HomographyTracker:
         fit = robust_homography(src, dst, self._usac(), c.min_inliers, c.refine_iterations)
         return None if fit is None else (fit, src[fit.inliers], dst[fit.inliers])
 
-    def _make_link(self, kf: Keyframe, fit: RobustFit, src: Array, dst: Array) -> KeyframeLink:
+    def _make_link(self, kf: Keyframe, fit: RobustFit, src: np.ndarray, dst: np.ndarray) -> KeyframeLink:
         """Link keyframe -> (not yet stored) frame in full resolution; target id filled in later."""
         s = self._scale
+        if len(src) != int(fit.inliers.sum()):  # all correspondences given: keep the inliers
+            src, dst = src[fit.inliers], dst[fit.inliers]
+        src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
         return KeyframeLink(
             source_id=kf.id, target_id=-1, H=homography_work_to_full(fit.H, s),
             source_points=(src + 0.5) / s - 0.5, target_points=(dst + 0.5) / s - 0.5,
@@ -447,8 +476,6 @@ class HomographyTracker:
         corners: Points,
         descriptors: Descriptors | None = None,
     ) -> Keyframe:
-        if descriptors is None:
-            descriptors = orb_descriptors(self._orb, image)
         keyframe = Keyframe(self._frame_index, stamp, image, H_ref, depth, corners, descriptors)
         self._keyframes[keyframe.id] = keyframe
         self._keyframe_id = keyframe.id
@@ -478,16 +505,15 @@ class HomographyTracker:
         if len(corners) < c.textured_min_corners:
             return self._result(TrackingState.TEXTURELESS, stamp, match_count)
         self._lost_frames += 1
-        descriptors = orb_descriptors(self._orb, image)
         for kf in self._relocalisation_order()[: c.relocalise_candidates]:
-            src, dst = match_descriptors(kf.descriptors, descriptors, c.descriptor_ratio)
-            fit = robust_homography(src, dst, self._usac(3.0), c.min_inliers, c.refine_iterations)
-            if fit is None or not _plausible(fit.H, image.shape):
-                continue
-            result = self._commit_keyframe(image, stamp, corners, descriptors, [(kf, fit.H, None)],
-                                           TrackingState.RELOCALISED, None, len(src))  # fmt: skip
-            if result is not None:
-                return result
+            H_desc = self._descriptor_homography(kf, image)
+            refined = None if H_desc is None else self._photometric_link(kf, image, corners, H_desc)
+            if refined is not None:
+                fit, src, dst = refined
+                link = (kf, fit, self._make_link(kf, fit, src, dst))
+                return self._commit_keyframe(
+                    image, stamp, corners, [link], TrackingState.RELOCALISED, len(src)
+                )
         if self._lost_frames >= c.new_map_after_lost:
             _LOG.info("relocalisation failed for %d frames: starting a new map", self._lost_frames)
             self._reference_id = None
