@@ -250,6 +250,8 @@ def test_bad_panorama_and_existing_output(
     assert synth(monkeypatch, existing) == 2
     assert "already exists" in capsys.readouterr().err
     assert [p.name for p in existing.iterdir()] == ["keep.txt"]
+    assert synth(monkeypatch, tmp_path / "no" / "bag") == 2
+    assert "no such directory" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["existing", "notes.jpg", "wide.png"]  # no leftovers
 
 

@@ -358,69 +358,95 @@ class Progress:
         print(f"synth: {done}/{self.total} frames, {rate:.1f} frames/s, {eta:.0f} s left", file=sys.stderr)
 
 
-def write_bag(args: argparse.Namespace, bag_path: Path, panorama: Panorama, setup: Setup) -> int:
-    """Render every frame and write all topics to a new bag at bag_path; returns the frame count."""
+@dataclass(frozen=True)
+class Topics:
+    image: str
+    image_type: str
+    encoders: str
+    camera_info: str
+    truth: str
+
+    @classmethod
+    def for_args(cls, args: argparse.Namespace) -> Topics:
+        ns = args.namespace.rstrip("/")
+        if args.format in ("jpeg", "png"):
+            return cls(f"{ns}/image_raw/compressed", COMPRESSED_TYPE, *cls._others(ns))
+        return cls(f"{ns}/image_raw", IMAGE_TYPE, *cls._others(ns))
+
+    @staticmethod
+    def _others(ns: str) -> tuple[str, str, str]:
+        return f"{ns}/joint_states", f"{ns}/ground_truth/camera_info", f"{ns}/ground_truth/joint_states"
+
+    def types(self) -> list[tuple[str, str]]:
+        return [
+            (self.image, self.image_type),
+            (self.encoders, JOINT_TYPE),
+            (self.camera_info, INFO_TYPE),
+            (self.truth, JOINT_TYPE),
+        ]
+
+
+def encoder_messages(types: Any, setup: Setup, seed: int) -> deque[tuple[int, Any]]:
+    """(stamp ns, JointState) of every encoder sample, in time order (core/render.py EncoderModel)."""
+    times = setup.encoders.sample_times(float(setup.frame_times[0]), float(setup.frame_times[-1]))
+    pan, tilt, zoom = setup.encoders.readings(
+        setup.profile, setup.zoom, times, np.random.default_rng([seed, 1])
+    )
+    out: deque[tuple[int, Any]] = deque()
+    for k, t in enumerate(times):
+        t_ns = setup.start_ns + round(float(t) * 1e9)
+        values = (float(pan[k]), float(tilt[k]), float(zoom[k]))
+        out.append((t_ns, joint_state_msg(types, _header(types, t_ns, ""), values)))
+    return out
+
+
+def frame_messages(
+    types: Any,
+    args: argparse.Namespace,
+    topics: Topics,
+    truth: CameraState,
+    counts: np.ndarray,
+    i: int,
+    t_ns: int,
+    payload: Any,
+) -> list[tuple[str, str, Any]]:
+    """The image of frame i and its ground truth (CameraInfo, JointState), all with the same header."""
+    header = _header(types, t_ns, args.frame_id)
+    gt = (float(truth.pan[i]), float(truth.tilt[i]), float(counts[i]))
+    return [
+        (
+            topics.image,
+            topics.image_type,
+            image_msg(types, header, args.format, payload, (args.width, args.height)),
+        ),
+        (topics.camera_info, INFO_TYPE, camera_info_msg(types, header, truth, i, args.width, args.height)),
+        (topics.truth, JOINT_TYPE, joint_state_msg(types, header, gt)),
+    ]
+
+
+def write_bag(args: argparse.Namespace, bag_path: Path, panorama: Panorama, setup: Setup) -> None:
+    """Render every frame and write all topics, in time order, to a new bag at bag_path."""
     from ptz_selfcal.tools.bagio import BagWriter, typestore
 
     types = typestore().types
-    ns = args.namespace.rstrip("/")
-    compressed = args.format in ("jpeg", "png")
-    image_topic = f"{ns}/image_raw/compressed" if compressed else f"{ns}/image_raw"
+    topics = Topics.for_args(args)
     truth = setup.profile.state(setup.frame_times)
-    enc_times = setup.encoders.sample_times(float(setup.frame_times[0]), float(setup.frame_times[-1]))
-    enc = setup.encoders.readings(setup.profile, setup.zoom, enc_times, np.random.default_rng([args.seed, 1]))
-    true_counts = setup.zoom.counts(truth.f)
-    stamp = lambda t: setup.start_ns + round(float(t) * 1e9)  # noqa: E731
+    counts = setup.zoom.counts(truth.f)  # exact zoom counts of the ground truth
+    encoders = encoder_messages(types, setup, args.seed)
     progress = Progress(args.frames, args.quiet)
-    next_enc = 0
     with BagWriter(bag_path, storage=args.storage) as writer:
-        for topic, msgtype in (
-            (image_topic, COMPRESSED_TYPE if compressed else IMAGE_TYPE),
-            (f"{ns}/joint_states", JOINT_TYPE),
-            (f"{ns}/ground_truth/camera_info", INFO_TYPE),
-            (f"{ns}/ground_truth/joint_states", JOINT_TYPE),
-        ):
+        for topic, msgtype in topics.types():
             writer.add_topic(topic, msgtype)
-        renderer = frame_renderer(args, panorama, setup, truth)
-        for i, payload in enumerate(ordered_map(renderer, args.frames, args.jobs)):
-            t_ns = stamp(truth.t[i])
-            while next_enc < len(enc_times) and stamp(enc_times[next_enc]) <= t_ns:  # bag in time order
-                next_enc = _write_encoder(writer, types, ns, enc_times, enc, next_enc, stamp)
-            header = _header(types, t_ns, args.frame_id)
-            writer.write(
-                image_topic,
-                writer_type(compressed),
-                t_ns,
-                image_msg(types, header, args.format, payload, (args.width, args.height)),
-            )
-            writer.write(
-                f"{ns}/ground_truth/camera_info",
-                INFO_TYPE,
-                t_ns,
-                camera_info_msg(types, header, truth, i, args.width, args.height),
-            )
-            gt = (float(truth.pan[i]), float(truth.tilt[i]), float(true_counts[i]))
-            writer.write(
-                f"{ns}/ground_truth/joint_states", JOINT_TYPE, t_ns, joint_state_msg(types, header, gt)
-            )
+        frames = ordered_map(frame_renderer(args, panorama, setup, truth), args.frames, args.jobs)
+        for i, payload in enumerate(frames):
+            t_ns = setup.start_ns + round(float(truth.t[i]) * 1e9)
+            while encoders and encoders[0][0] <= t_ns:
+                writer.write(topics.encoders, JOINT_TYPE, *encoders.popleft())
+            for topic, msgtype, msg in frame_messages(types, args, topics, truth, counts, i, t_ns, payload):
+                writer.write(topic, msgtype, t_ns, msg)
             progress.update(i + 1)
-        while next_enc < len(enc_times):
-            next_enc = _write_encoder(writer, types, ns, enc_times, enc, next_enc, stamp)
-    return args.frames
-
-
-def writer_type(compressed: bool) -> str:
-    return COMPRESSED_TYPE if compressed else IMAGE_TYPE
-
-
-def _write_encoder(
-    writer: Any, types: Any, ns: str, times: np.ndarray, enc: tuple, k: int, stamp: Callable
-) -> int:
-    t_ns = stamp(times[k])
-    header = _header(types, t_ns, "")
-    values = (float(enc[0][k]), float(enc[1][k]), float(enc[2][k]))
-    writer.write(f"{ns}/joint_states", JOINT_TYPE, t_ns, joint_state_msg(types, header, values))
-    return k + 1
+        for t_ns, msg in encoders:
+            writer.write(topics.encoders, JOINT_TYPE, t_ns, msg)
 
 
 def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) -> str:
