@@ -107,7 +107,20 @@ PARAMS = [
         "seconds (wall time) a frame may wait for an encoder sample newer than its stamp (0: never wait)",
         in_range(0.0, 10.0),
     ),
-    Param("max_pending_frames", 30, "frames that may wait for encoders at once", in_range(1, 1000)),
+    Param(
+        "max_pending_frames",
+        30,
+        "frames that may wait (for encoders or for the first subscriber) at once; the oldest is then "
+        "published (or dropped without subscribers)",
+        in_range(1, 1000),
+    ),
+    Param(
+        "wait_for_subscribers",
+        1,
+        "hold frames until frame_in has this many matched subscribers, so none is published into the void "
+        "while the graph connects (0: never hold)",
+        in_range(0, 100),
+    ),
     Param("max_image_pixels", 50_000_000, "larger images are refused before decoding", in_range(1, 1 << 40)),
     Param("max_image_bytes", 200_000_000, "larger image payloads are refused", in_range(1, 1 << 40)),
     Param("mono16_max", 65535, "mono16 value shown as white (4095 for a 12-bit sensor)", in_range(1, 65535)),
@@ -170,8 +183,7 @@ class FrameIngest(Node):
             self.create_subscription(CompressedImage, topics.IMAGE_COMPRESSED, self._on_compressed, sensor)
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints, encoder_qos)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
-        if self._wait > 0:
-            self.create_timer(min(0.02, self._wait / 2), self._flush_pending)
+        self.create_timer(0.02, self._flush_pending)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         cv2.utils.logging.setLogLevel(
             cv2.utils.logging.LOG_LEVEL_ERROR
@@ -273,6 +285,11 @@ class FrameIngest(Node):
     # ------------------------------------------------------------------ output
     def _flush_pending(self) -> None:
         now = time.monotonic()
+        while self._pending and self._pub.get_subscription_count() < self._p["wait_for_subscribers"]:
+            if len(self._pending) <= self._p["max_pending_frames"]:
+                return
+            self._pending.popleft()
+            self._note("dropped_no_subscriber", "frames dropped while nothing subscribes to frame_in")
         while self._pending:
             item = self._pending[0]
             query = self._encoders.query(stamp_to_sec(item.header.stamp))

@@ -52,6 +52,19 @@ PARAMS = [
         one_of("lossless", "latest"),
     ),
     Param("queue_depth", 2, "KEEP_LAST depth of the input queue with queue_policy latest", in_range(1, 100)),
+    Param(
+        "wait_for_subscribers",
+        1,
+        "hold outputs until the homography topic has this many matched subscribers, so none is published "
+        "into the void while the graph connects (0: never hold)",
+        in_range(0, 100),
+    ),
+    Param(
+        "max_held",
+        100,
+        "outputs held at most while waiting for subscribers (the oldest are dropped)",
+        in_range(1, 100000),
+    ),
     Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
 ]
 
@@ -145,6 +158,10 @@ class HomographyTrackerNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
         self.create_subscription(IngestedFrame, topics.FRAME_IN, self._on_frame, qos)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        self._held: deque[tuple[Any, Any]] = deque()  # (publisher, message) waiting for subscribers
+        self._wait_subs = p["wait_for_subscribers"]
+        self._max_held = p["max_held"]
+        self.create_timer(0.02, self._flush_held)
         self.get_logger().info(
             f"tracking {topics.FRAME_IN} -> {self._pub.topic_name} ({p['queue_policy']}); "
             f"max_features={self._config.max_features}, max_keyframes={self._config.max_keyframes}"
@@ -226,11 +243,25 @@ class HomographyTrackerNode(Node):
         if self._reference is not None:
             out.reference_stamp, out.reference_frame_id = self._reference
         self._state_counts[_state_name(state)] += 1
-        self._pub.publish(out)
+        self._send(self._pub, out)
         self._counts["frames_out"] += 1
         if result is not None:
             for link in result.links:
                 self._publish_link(link)
+
+    def _send(self, publisher: Any, msg: Any) -> None:
+        self._held.append((publisher, msg))
+        self._flush_held()
+
+    def _flush_held(self) -> None:
+        if self._held and self._pub.get_subscription_count() < self._wait_subs:
+            while len(self._held) > self._max_held:
+                self._held.popleft()
+                self._warn_once("dropped_no_subscriber", "outputs dropped while nothing subscribes to them")
+            return
+        while self._held:
+            publisher, msg = self._held.popleft()
+            publisher.publish(msg)
 
     def _publish_link(self, link: Any) -> None:
         if not (np.all(np.isfinite(link.H)) and len(link.source_points) == len(link.target_points)):
@@ -245,7 +276,7 @@ class HomographyTrackerNode(Node):
         msg.h = np.asarray(link.H, dtype=float).ravel()
         msg.points = np.asarray(link.target_points, dtype=np.float32).ravel()
         msg.other_points = np.asarray(link.source_points, dtype=np.float32).ravel()
-        self._kf_pub.publish(msg)
+        self._send(self._kf_pub, msg)
         self._counts["keyframe_links_out"] += 1
 
     def _prune_keyframe_stamps(self) -> None:

@@ -152,24 +152,21 @@ def run(args: argparse.Namespace) -> int:
         assert namespace is not None
         input_kind = "compressed" if image_topic == topics.bag_topic(topics.IMAGE_COMPRESSED) else "raw"
         diag_remap = ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
+        # Run-mode overrides (after the params file, so they win): lossless, reliable, the bag's image
+        # topic, and outputs held until the next stage (and the recorder where it listens) is matched.
+        ingest_args = {
+            "sensor_reliability": "reliable",
+            "queue_policy": "lossless",
+            "input": input_kind,
+            "wait_for_subscribers": 2 if args.record_frames else 1,
+        }
+        tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
         specs = [
-            NodeSpec(
-                "frame_ingest",
-                NODE_MODULES["frame_ingest"],
-                [
-                    *diag_remap,
-                    "-p",
-                    "sensor_reliability:=reliable",
-                    "-p",
-                    "queue_policy:=lossless",
-                    "-p",
-                    f"input:={input_kind}",
-                ],
-            ),
+            NodeSpec("frame_ingest", NODE_MODULES["frame_ingest"], diag_remap + _overrides(ingest_args)),
             NodeSpec(
                 "homography_tracker",
                 NODE_MODULES["homography_tracker"],
-                [*diag_remap, "-p", "queue_policy:=lossless"],
+                diag_remap + _overrides(tracker_args),
             ),
             NodeSpec("calibrator", args.calibrator_module, diag_remap),
         ]
@@ -195,6 +192,10 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return 0
+
+
+def _overrides(values: dict[str, Any]) -> list[str]:
+    return [arg for name, value in values.items() for arg in ("-p", f"{name}:={value}")]
 
 
 class _Replay:
@@ -301,18 +302,16 @@ class _Replay:
                 encoder_pub = node.create_publisher(
                     msg_class(self.bag_topics[self.encoder_topic]), topics.JOINT_STATES, reliable_qos()
                 )
-            subs = []
+            self.subs: dict[str, Any] = {}
             for topic in self.output_topics:
                 name = f"{self.namespace}{topic}" if topic.startswith("/") else topic
                 self.writer.add_topic(topics.bag_topic(topic), topics.TYPES[topic])
-                subs.append(
-                    node.create_subscription(
-                        msg_class(topics.TYPES[topic]),
-                        name,
-                        lambda raw, topic=topic: self._on_output(topic, raw),
-                        reliable_qos(),
-                        raw=True,
-                    )
+                self.subs[topic] = node.create_subscription(
+                    msg_class(topics.TYPES[topic]),
+                    name,
+                    lambda raw, topic=topic: self._on_output(topic, raw),
+                    reliable_qos(),
+                    raw=True,
                 )
             self.supervisor.start()
             self._wait_ready(node, executor, image_pub, encoder_pub)
@@ -360,6 +359,10 @@ class _Replay:
             ),
             "frame_ingest publishes frames": lambda: node.count_publishers(f"{ns}/{topics.FRAME_IN}") > 0,
             "homography_tracker publishes": lambda: node.count_publishers(f"{ns}/{topics.HOMOGRAPHY}") > 0,
+            "outputs matched to the recorder": lambda: all(
+                self.subs[t].get_publisher_count() > 0
+                for t in (topics.CAMERA_INFO, topics.FRAME_CALIBRATION, topics.HOMOGRAPHY)
+            ),
         }
         while True:
             self._check_supervisor()
