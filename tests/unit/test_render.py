@@ -17,7 +17,7 @@ from ptz_selfcal.core.render import (
     focal_from_hfov,
     gaussian_noise,
     is_equirectangular,
-    pyramid_level,
+    pyramid_blend,
     render_view,
 )
 
@@ -77,10 +77,10 @@ def test_world_direction_lands_on_predicted_pixel(pan_deg: float, tilt_deg: floa
         np.testing.assert_allclose(predicted, targets, atol=1e-9)
 
 
-def _smooth_panorama(seed: int = 3) -> np.ndarray:
+def _smooth_panorama(seed: int = 3, sigma: float = 6.0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     noise = rng.uniform(0, 255, (512, 1024)).astype(np.float32)
-    tiled = cv2.GaussianBlur(np.hstack([noise] * 3), (0, 0), 6.0)  # periodic in longitude: no seam
+    tiled = cv2.GaussianBlur(np.hstack([noise] * 3), (0, 0), sigma)  # periodic in longitude: no seam
     smooth = tiled[:, 1024:2048]
     smooth = (smooth - smooth.min()) / (smooth.max() - smooth.min()) * 255.0
     return smooth.astype(np.uint8)
@@ -98,13 +98,26 @@ def test_pyramid_levels_are_aligned() -> None:
         assert abs(dx) < 0.03 and abs(dy) < 0.03, (level, dx, dy)
 
 
-def test_pyramid_level_follows_focal_length() -> None:
+def test_pyramid_blend_follows_focal_length() -> None:
     pano = build_panorama(_smooth_panorama())
-    f_match = PANO_W / 2 / (2.0 * np.pi)  # 1024-wide panorama: one level-0 pixel per output pixel
-    assert pyramid_level(pano, f_match) == 0
-    assert pyramid_level(pano, f_match / 2.0) == 1
-    assert pyramid_level(pano, f_match / 4.0) == 2
-    assert pyramid_level(pano, f_match * 3.0) == 0
+    f_match = 1024 / (2.0 * np.pi)  # 1024-wide panorama: one level-0 pixel per output pixel
+    assert pyramid_blend(pano, f_match * 3.0) == (0, 0.0)  # finer than the panorama: level 0 only
+    assert pyramid_blend(pano, f_match) == (0, 0.0)
+    level, w = pyramid_blend(pano, f_match / 2.0**0.25)
+    assert level == 0 and w == pytest.approx(0.25)
+    level, w = pyramid_blend(pano, f_match / 2.0**2.5)
+    assert level == 2 and w == pytest.approx(0.5)
+
+
+def test_blended_views_change_continuously_with_zoom() -> None:
+    """Rendered at f(1 -+ 1e-6) across a level boundary, a view barely changes: no level jump."""
+    pano = build_panorama(_smooth_panorama(sigma=1.0))
+    R = ptz_rotation(0.2, 0.0)
+    for s in (0.5, 1.0, 1.5, 2.0):  # ratio 2^s panorama pixels per output pixel
+        f = 1024 / (2.0 * np.pi) / 2.0**s
+        a = render_view(pano, intrinsic_matrix(f * (1 - 1e-6), 63.5, 47.5), R, (128, 96)).astype(int)
+        b = render_view(pano, intrinsic_matrix(f * (1 + 1e-6), 63.5, 47.5), R, (128, 96)).astype(int)
+        assert np.abs(a - b).mean() < 1.0 and np.abs(a - b).max() <= 2, s  # rounding; a level jump is ~10
 
 
 def test_rendering_is_deterministic_and_wraps() -> None:

@@ -97,15 +97,19 @@ def build_panorama(image: np.ndarray, max_levels: int = 6) -> Panorama:
     return Panorama(tuple(_pad(level) for level in levels), w, h)
 
 
-def pyramid_level(panorama: Panorama, f: float, count: int | None = None) -> int:
-    """Pyramid level whose pixel pitch best matches the view's (1/f rad at the image centre).
+def pyramid_blend(panorama: Panorama, f: float) -> tuple[int, float]:
+    """Level L and blend weight w of level L + 1 for a view of focal length f (mip-mapping).
 
-    ratio = panorama pixels per output pixel at the centre = (W / 2pi) / f; level round(log2 ratio)
-    keeps the sampling ratio within [0.71, 1.41] so zoomed-out views do not alias.
+    s = log2(ratio), ratio = (W / 2pi) / f = panorama pixels per output pixel at the image centre.
+    s <= 0 (the view is finer than the panorama): level 0 alone; otherwise levels floor(s) and
+    floor(s) + 1 mixed with w = s - floor(s): zoomed-out views do not alias and the sharpness of the
+    images changes continuously with zoom (no jump when the level changes).
     """
-    count = len(panorama.levels) if count is None else count
+    top = len(panorama.levels) - 1
     ratio = panorama.width / (2.0 * np.pi * f)
-    return int(np.clip(np.round(np.log2(max(ratio, 1e-12))), 0, count - 1))
+    s = float(np.clip(np.log2(max(ratio, 1e-12)), 0.0, top))
+    level = min(int(s), max(top - 1, 0))
+    return level, (s - level if top > 0 else 0.0)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -149,9 +153,9 @@ def view_maps(
     distortion: float | None = None,
     level: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """float32 cv2.remap maps into the padded pyramid level, and that level."""
+    """float32 cv2.remap maps into the padded pyramid level (default: pyramid_blend's finer level)."""
     K = np.asarray(K, dtype=float)
-    level = pyramid_level(panorama, float(K[0, 0])) if level is None else level
+    level = pyramid_blend(panorama, float(K[0, 0]))[0] if level is None else level
     x, y = panorama_coordinates(view_rays(K, R, size, distortion), panorama.width, panorama.height)
     w_l, _ = panorama.level_size(level)
     scale = np.float32(0.5**level)  # x_L = x_0 / 2^L
@@ -174,14 +178,29 @@ def render_view(
     interpolation: int = cv2.INTER_LINEAR,
     level: int | None = None,
 ) -> np.ndarray:
-    """The (h, w) view of a camera with intrinsics K, world-to-camera rotation R, division-model lam.
+    """The (h, w) uint8 view of a camera with intrinsics K, world-to-camera rotation R, division lam.
 
     size = (width, height). A raw image is turned into a Panorama first (costly: pass a Panorama when
-    rendering many views). level None picks the anti-aliasing pyramid level from the focal length.
+    rendering many views). level None blends two pyramid levels as pyramid_blend says; an explicit
+    level samples that level alone.
     """
     pano = panorama if isinstance(panorama, Panorama) else build_panorama(panorama)
+    weight = 0.0
+    if level is None:
+        level, weight = pyramid_blend(pano, float(np.asarray(K)[0, 0]))
     map_x, map_y, level = view_maps(pano, K, R, size, distortion, level)
-    return cv2.remap(pano.levels[level], map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
+    view = _remap(pano.levels[level], map_x, map_y, interpolation)
+    if weight < 1e-3:
+        return view
+    pad = np.float32(_PAD)
+    coarse = _remap(
+        pano.levels[level + 1], (map_x - pad) * 0.5 + pad, (map_y - pad) * 0.5 + pad, interpolation
+    )
+    return cv2.addWeighted(view, 1.0 - weight, coarse, weight, 0.0)  # x_{L+1} = x_L / 2 (trilinear)
+
+
+def _remap(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int) -> np.ndarray:
+    return cv2.remap(image, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 
 # --------------------------------------------------------------------------------------------------
