@@ -57,6 +57,11 @@ cmake --install "$ws/build/ptz_selfcal_msgs" > /dev/null
 
 log "installing src/ptz_selfcal (editable)"
 "$py" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e "$root/src/ptz_selfcal" 2>&1 | grep -v "^WARNING: Location" >&2 || true
+# setup.cfg puts executables in lib/ptz_selfcal (where `ros2 run` looks); expose them on the venv's bin too.
+for exe in "$venv"/lib/ptz_selfcal/*; do
+  [ -f "$exe" ] && ln -sf "$exe" "$venv/bin/$(basename "$exe")"
+done
+[ -x "$venv/bin/ptz-selfcal" ] || { echo "bootstrap: the ptz-selfcal command was not installed" >&2; exit 1; }
 env -i PATH=/usr/bin:/bin "$py" -c "import ptz_selfcal, rclpy; from ptz_selfcal_msgs.msg import FrameCalibration" \
   || { echo "bootstrap: the environment does not import" >&2; exit 1; }
 
