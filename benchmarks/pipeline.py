@@ -31,7 +31,6 @@ import numpy as np
 from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation
 from ptz_selfcal.tools import evaluate
-from ptz_selfcal.tools.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[1]
 PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
@@ -44,6 +43,18 @@ TARGETS = {
     "throughput_fps": 30.0,
     "flatness": 0.20,
 }
+
+
+def cli_main(argv: list[str]) -> int:
+    """A `ptz-selfcal` command in this process (cli.main picks the command from sys.argv)."""
+    import importlib
+
+    from ptz_selfcal.tools.cli import COMMANDS
+
+    module = importlib.import_module(COMMANDS[argv[0]][0])
+    parser = argparse.ArgumentParser(prog=f"ptz-selfcal {argv[0]}")
+    module.add_arguments(parser)
+    return int(module.run(parser.parse_args(argv[1:])) or 0)
 
 
 def rss_mb() -> float:

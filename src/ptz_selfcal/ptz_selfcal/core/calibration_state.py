@@ -29,6 +29,7 @@ directory, fsync, os.replace, directory fsync. A corrupt or unreadable file is r
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -46,7 +47,12 @@ from numpy.typing import NDArray
 
 from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
-from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator, Keyframe
+from ptz_selfcal.core.incremental import (
+    CalibrationState,
+    IncrementalCalibrator,
+    Keyframe,
+    intrinsics_from_transferred_diac,
+)
 from ptz_selfcal.core.intrinsics import (
     IntrinsicsModel,
     ParamMode,
@@ -210,6 +216,7 @@ class KeyframeBundleSolver:
         self.config = config
         self.matches = matches
         self.reference_keyframe_id: int | None = None
+        self.rotations: dict[Any, Array] = {}  # keyframe id -> R relative to the reference (last solve)
         self.last_method = ""
         self.last_message = ""
 
@@ -226,6 +233,14 @@ class KeyframeBundleSolver:
         # evaluation budget (which also counts the adjustment) would stop it short of convergence
         lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max(int(max_nfev), 100))
         self.last_method, self.last_message = lm.method, lm.message
+        result = self._refine(H, image_size, lm, keyframes)
+        if result.ok:
+            self.rotations = {kf.keyframe_id: R for kf, R in zip(keyframes, result.R[1:])}
+        return result
+
+    def _refine(
+        self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
+    ) -> SelfCalibrationResult:
         if not lm.ok or not self.config.bundle_adjustment:
             return lm
         try:
@@ -326,6 +341,8 @@ class _Snapshot:
     residual: float
     keyframe_count: int
     sigma_pp: tuple[float, float] = (math.nan, math.nan)
+    # per keyframe of the solve: (H reference -> keyframe (unit det), K, R relative to the reference)
+    keyframes: dict[int, tuple[Array, Array, Array]] = dataclasses.field(default_factory=dict)
 
 
 class CalibratorSession:
@@ -436,7 +453,7 @@ class CalibratorSession:
         snap = self._snapshot
         if snap is not None and snap.calibrated:
             try:
-                K, R, sigma_f = snap.calibrator.frame_intrinsics(H)
+                K, R, sigma_f = self._frame_intrinsics(snap, H, kid)
                 if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
                     return self._calibrated_output(snap, frame, K, R, sigma_f)
             except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
@@ -446,6 +463,24 @@ class CalibratorSession:
         if snap is not None and snap.message:
             out.message = snap.message
         return out
+
+    def _frame_intrinsics(self, snap: _Snapshot, H: Array, keyframe_id: int) -> tuple[Array, Array, float]:
+        """K_j, R_j, sigma_f in O(1).
+
+        When the frame was tracked against a keyframe of the solve, its K is that keyframe's refined K
+        (bundle adjustment) transferred by the short keyframe -> frame homography H_j H_k^-1, and its
+        orientation R_kj R_k: the error of the long reference -> keyframe chain does not enter.
+        Otherwise the reference calibration is transferred by the frame's homography (eq. 20).
+        """
+        K_ref, R_ref, sigma_f = snap.calibrator.frame_intrinsics(H)
+        local = snap.keyframes.get(keyframe_id)
+        if local is None:
+            return K_ref, R_ref, sigma_f
+        H_k, K_k, R_k = local
+        H_local = H @ np.linalg.inv(H_k)
+        K = intrinsics_from_transferred_diac(H_local, K_k, snap.calibrator.model, snap.calibrator.image_size)
+        R = rotation_from_homography(H_local, K_k, K) @ R_k
+        return K, R, sigma_f * K[1, 1] / K_ref[1, 1]
 
     def _calibrated_output(
         self, snap: _Snapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float
@@ -686,7 +721,21 @@ class CalibratorSession:
         snapshot_calibrator = IncrementalCalibrator.from_dict(calibrator.to_dict())
         residual = calibrator.last_solve.residual if calibrator.last_solve is not None else math.nan
         message = calibrator.message or (calibrator.motion.message if calibrator.motion else "")
+        keyframes: dict[int, tuple[Array, Array, Array]] = {}
+        if calibrator.calibrated:
+            K_ref = calibrator.reference_K
+            for kf in calibrator.keyframes:
+                if kf.K is None:
+                    continue
+                R = self.solver.rotations.get(kf.keyframe_id)
+                if R is None:
+                    R = rotation_from_homography(kf.H, K_ref, kf.K)
+                keyframes[int(kf.keyframe_id)] = (kf.H.copy(), kf.K.copy(), np.asarray(R, dtype=float).copy())
+            ref = self.solver.reference_keyframe_id
+            if ref is not None:
+                keyframes[int(ref)] = (np.eye(3), K_ref, np.eye(3))
         self._snapshot = _Snapshot(
+            keyframes=keyframes,
             calibrator=snapshot_calibrator,
             calibrated=calibrator.calibrated,
             state=calibrator.state.value,
