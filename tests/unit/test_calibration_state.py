@@ -1,0 +1,173 @@
+"""core/calibration_state: the calibrator's per-frame logic, statuses, zoom model use and persistence."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ptz_selfcal.core import calibration_state as cs
+from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+
+WIDTH, HEIGHT = 1280, 720
+PP = (639.5 + 15.0, 359.5 - 10.0)
+
+
+def sweep(n: int, pan_deg: float = 30.0, tilt_deg: float = 8.0, zoom: bool = True):
+    t = np.linspace(0.0, 1.0, n)
+    f = 1000.0 * (1.0 + (1.5 * np.sin(np.pi * t) if zoom else 0.0 * t))
+    pan = np.radians(pan_deg * np.sin(2 * np.pi * t))
+    tilt = np.radians(tilt_deg * np.sin(4 * np.pi * t + 0.4))
+    K = np.array([intrinsic_matrix(fi, *PP) for fi in f])
+    R = np.array([ptz_rotation(p, q) for p, q in zip(pan, tilt)])
+    H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
+    return K, H, f
+
+
+def feed(session: cs.CalibratorSession, H, f, every: int = 8, seed: int = 0, frames=None) -> list:
+    rng = np.random.default_rng(seed)
+    outs = []
+    for j in frames if frames is not None else range(len(H)):
+        kf = j % every == 0
+        out = session.process(
+            cs.FrameInput(
+                stamp=j / 30.0,
+                H=H[j],
+                tracking_state="NEW_KEYFRAME" if kf else "TRACKING",
+                width=WIDTH,
+                height=HEIGHT,
+                keyframe_id=j - j % every,
+                reference_id="ref",
+                zoom=float(f[j]),
+            )
+        )
+        outs.append(out)
+        if kf:
+            if j >= every:
+                a, b = j, j - every
+                xa = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], (200, 2))
+                xb = apply_homography(H[b] @ np.linalg.inv(H[a]), xa)
+                ok = (xb[:, 0] >= 0) & (xb[:, 0] < WIDTH) & (xb[:, 1] >= 0) & (xb[:, 1] < HEIGHT)
+                session.add_keyframe_matches(a, b, xa[ok] + rng.normal(0, 0.2, (ok.sum(), 2)), xb[ok])
+            session.step(5.0)
+    return outs
+
+
+@pytest.fixture(scope="module")
+def calibrated() -> tuple[cs.CalibratorSession, np.ndarray, np.ndarray, np.ndarray, list]:
+    K, H, f = sweep(120)
+    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    outs = feed(session, H, f)
+    return session, K, H, f, outs
+
+
+def test_converges_on_exact_geometry_and_statuses_progress(calibrated) -> None:
+    session, K, _, _, outs = calibrated
+    statuses = [o.status for o in outs]
+    assert statuses[0] == cs.INITIALISING
+    assert statuses[-1] == cs.CONVERGED
+    first = statuses.index(cs.CALIBRATING) if cs.CALIBRATING in statuses else statuses.index(cs.CONVERGED)
+    assert first < 60
+    late = outs[-30:]
+    err = [abs(o.K[0, 0] / K[len(outs) - 30 + i][0, 0] - 1) for i, o in enumerate(late)]
+    assert max(err) < 2e-3
+    assert all(np.hypot(*(o.K[:2, 2] - PP)) < 3.0 for o in late)
+    assert all(o.R is not None and o.sigma_f > 0 for o in late)
+    assert session.counters["solves"] >= 2 and session.counters["keyframes"] >= 10
+
+
+def test_tracking_lost_uses_zoom_model_then_last_good(calibrated) -> None:
+    session, K, _, f, _ = calibrated
+    assert session.counters["zoom_model_samples"] >= 4
+    j = 70
+    lost = cs.FrameInput(1e3, None, "TRACKING_LOST", WIDTH, HEIGHT, zoom=float(f[j]))
+    out = session.process(lost)
+    assert out.status == cs.PREDICTED_FROM_ZOOM
+    assert abs(out.K[0, 0] / K[j][0, 0] - 1) < 0.02
+    out = session.process(cs.FrameInput(1e3, None, "TEXTURELESS", WIDTH, HEIGHT))  # no zoom encoder
+    assert out.status == cs.TRACKING_LOST and out.source == "last_good"
+    assert np.all(np.isfinite(out.K))
+
+
+def test_garbage_homographies_are_counted_and_still_answered(calibrated) -> None:
+    session = calibrated[0]
+    before = session.counters["invalid_homographies"]
+    for H in (
+        np.full((3, 3), np.nan),
+        np.zeros((3, 3)),
+        np.diag([1e9, 1e-9, 1.0]),
+        np.diag([1.0, 1.0, np.inf]),
+    ):
+        out = session.process(
+            cs.FrameInput(2e3, H, "TRACKING", WIDTH, HEIGHT, keyframe_id=8, reference_id="ref")
+        )
+        assert np.all(np.isfinite(out.K)) and out.K[0, 0] > 0
+        assert out.status in (cs.PREDICTED_FROM_ZOOM, cs.TRACKING_LOST)
+    assert session.counters["invalid_homographies"] == before + 4
+
+
+def test_save_restore_and_corrupt_files(calibrated, tmp_path: Path) -> None:
+    session, K, H, f, _ = calibrated
+    session.state_dir = tmp_path
+    written = session.save()
+    assert {Path(p).name for p in written} == {cs.STATE_FILE, cs.ZOOM_MODEL_FILE}
+    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+    restored = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    messages = restored.restore()
+    assert not [m for m in messages if m.startswith("WARNING")], messages
+    j = 100
+    out = restored.process(
+        cs.FrameInput(5.0, H[j], "TRACKING", WIDTH, HEIGHT, keyframe_id=96, reference_id="ref")
+    )
+    assert out.status in (cs.CALIBRATING, cs.CONVERGED)
+    assert abs(out.K[0, 0] / K[j][0, 0] - 1) < 2e-3
+    # a restarted calibrator with lost tracking predicts from the saved zoom model at once
+    out = restored.process(cs.FrameInput(6.0, None, "TRACKING_LOST", WIDTH, HEIGHT, zoom=float(f[j])))
+    assert out.status == cs.PREDICTED_FROM_ZOOM and abs(out.K[0, 0] / K[j][0, 0] - 1) < 0.02
+
+    (tmp_path / cs.STATE_FILE).write_text("calibrator: [unclosed\n")
+    (tmp_path / cs.ZOOM_MODEL_FILE).write_bytes(b"\x00\xff garbage")
+    fresh = cs.CalibratorSession(state_dir=tmp_path)
+    messages = fresh.restore()
+    assert sum(m.startswith("WARNING") for m in messages) == 2, messages
+    out = fresh.process(
+        cs.FrameInput(7.0, H[j], "TRACKING", WIDTH, HEIGHT, keyframe_id=96, reference_id="ref")
+    )
+    assert out.status == cs.INITIALISING
+
+
+def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path: Path, monkeypatch) -> None:
+    path = tmp_path / "state.yaml"
+    cs.atomic_write_text(path, "old: 1\n")
+
+    def fail(*_args, **_kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(cs.os, "replace", fail)
+    with pytest.raises(OSError):
+        cs.atomic_write_text(path, "new: 2\n")
+    assert path.read_text() == "old: 1\n"
+    assert os.listdir(tmp_path) == ["state.yaml"]
+
+
+def test_pan_only_is_degenerate() -> None:
+    _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    outs = feed(session, H, f, every=6)
+    assert outs[-1].status == cs.DEGENERATE_MOTION
+    assert cs.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].sigma_f > 0.1 * outs[-1].K[0, 0]
+
+
+def test_reference_change_restarts_the_calibration(calibrated) -> None:
+    session, _, _, f, _ = calibrated
+    before = session.counters["reference_changes"]
+    out = session.process(
+        cs.FrameInput(9.0, np.eye(3), "NEW_KEYFRAME", WIDTH, HEIGHT, 500, "new_map", float(f[0]))
+    )
+    assert session.counters["reference_changes"] == before + 1
+    assert out.status == cs.INITIALISING
+    assert out.source == "zoom_model"  # the learned zoom model is the prior of the new map
