@@ -251,10 +251,26 @@ def test_keyframe_pair_observations_recover_the_truth() -> None:
     R_true = seq.R_relative[keyframes]
     K = K_true * np.array([[0.97, 1, 1], [1, 0.97, 1], [1, 1, 1]])
     K[:, :2, 2] += [3.0, 2.0]
-    result = bundle_adjust(obs, K, R_true, seq.image_size, SQUARE_CONSTANT_PP)
-    np.testing.assert_allclose(result.focal, K_true[:, 1, 1], rtol=1e-6)
-    np.testing.assert_allclose(result.principal_point, K_true[:, :2, 2], atol=1e-4)
-    assert max(rotation_angle(Re @ Rt.T) for Re, Rt in zip(result.R, R_true)) < 1e-8
+    for schur in ("sparse", "dense"):  # the two ways of eliminating the rays agree
+        result = bundle_adjust(obs, K, R_true, seq.image_size, SQUARE_CONSTANT_PP, schur=schur)
+        np.testing.assert_allclose(result.focal, K_true[:, 1, 1], rtol=1e-6)
+        np.testing.assert_allclose(result.principal_point, K_true[:, :2, 2], atol=1e-4)
+        assert max(rotation_angle(Re @ Rt.T) for Re, Rt in zip(result.R, R_true)) < 1e-8
+
+
+def test_sparse_and_dense_elimination_give_the_same_solution_and_uncertainty() -> None:
+    seq = paper_sequence("B", 0.5, seed=8, n_points=300)
+    K, R = _perturbed_start(seq, seed=4, focal_scale=1.02)
+    prior = default_pp_prior(seq.image_size, 5.0)
+    kw = {"pp_prior": prior, "noise_sigma": 0.5}
+    dense = bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_VARYING_PP, schur="dense", **kw)
+    sparse = bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_VARYING_PP, schur="sparse", **kw)
+    np.testing.assert_allclose(sparse.K, dense.K, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(sparse.sigma_f, dense.sigma_f, rtol=1e-6)
+    np.testing.assert_allclose(sparse.sigma_pp, dense.sigma_pp, rtol=1e-6)
+    np.testing.assert_allclose(sparse.cost, dense.cost, rtol=1e-10)
+    with pytest.raises(ValueError, match="schur"):
+        bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_CONSTANT_PP, schur="banded")
 
 
 def test_focal_lower_bound_and_errors() -> None:

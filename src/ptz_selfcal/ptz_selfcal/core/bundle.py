@@ -259,16 +259,126 @@ def _prior_terms(
     return weight * (value - mean[layout.prior_axis]), weight
 
 
+class _DenseCoupling:
+    """W (P, 2, m) stored densely over rays: best when every ray is seen in many frames."""
+
+    def __init__(self, W: Array) -> None:
+        self.W = W
+
+    def schur(self, V_inv: Array) -> Array:
+        """W V^-1 W^T (P, P)."""
+        P = len(self.W)
+        return _times_blocks(self.W, V_inv).reshape(P, -1) @ self.W.reshape(P, -1).T
+
+    def times_rays(self, V_inv: Array, g_ray: Array) -> Array:
+        """W V^-1 g (P,) for a (2, m) ray vector g."""
+        return self.W.reshape(len(self.W), -1) @ _blocks_times(V_inv, g_ray).ravel()
+
+    def transpose_times(self, d_cam: Array) -> Array:
+        """W^T d (2, m)."""
+        return (self.W.reshape(len(self.W), -1).T @ d_cam).reshape(2, -1)
+
+
+class _SparseCoupling:
+    """W kept per observation (L, 2, N): best when rays are seen in few frames (keyframe pairs).
+
+    W V^-1 W^T is accumulated over every ordered pair of observations of the same ray, one GEMM per
+    pair of frames (pairs are pre-sorted by frame pair).
+    """
+
+    def __init__(self, W_obs: Array, structure: _SparseStructure, n_params: int, n_rays: int) -> None:
+        self.W_obs = W_obs
+        self.st = structure
+        self.P = n_params
+        self.m = n_rays
+
+    def schur(self, V_inv: Array) -> Array:
+        v = V_inv[:, self.st.ray]
+        W0, W1 = self.W_obs[:, 0], self.W_obs[:, 1]
+        WV = np.stack([W0 * v[0] + W1 * v[1], W0 * v[1] + W1 * v[2]], axis=2)  # (L, N, 2)
+        W = np.stack([W0, W1], axis=2)
+        A, B = WV[:, self.st.pair_first], W[:, self.st.pair_second]  # (L, Np, 2)
+        L = len(W)
+        blocks = np.empty((len(self.st.group_bounds) - 1, L, L))
+        for g, (lo, hi) in enumerate(pairwise(self.st.group_bounds)):
+            blocks[g] = A[:, lo:hi].reshape(L, -1) @ B[:, lo:hi].reshape(L, -1).T
+        P1 = self.P + 1
+        S = np.bincount(self.st.group_index.ravel(), weights=blocks.ravel(), minlength=P1 * P1)
+        return S.reshape(P1, P1)[:-1, :-1]
+
+    def times_rays(self, V_inv: Array, g_ray: Array) -> Array:
+        Vg = _blocks_times(V_inv, g_ray)[:, self.st.ray]  # (2, N)
+        contrib = self.W_obs[:, 0] * Vg[0] + self.W_obs[:, 1] * Vg[1]  # (L, N)
+        return np.bincount(self.st.local.ravel(), weights=contrib.ravel(), minlength=self.P + 1)[:-1]
+
+    def transpose_times(self, d_cam: Array) -> Array:
+        d = np.append(d_cam, 0.0)[self.st.local]  # (L, N)
+        q0 = np.einsum("ln,ln->n", self.W_obs[:, 0], d)
+        q1 = np.einsum("ln,ln->n", self.W_obs[:, 1], d)
+        return np.stack([np.bincount(self.st.ray, weights=q, minlength=self.m) for q in (q0, q1)])
+
+
+@dataclass
+class _SparseStructure:
+    """Fixed index structure of the sparse Schur complement for one solve."""
+
+    ray: IntArray  # (N,) ray of each observation
+    local: IntArray  # (L, N) global unknown index of each observation's camera entries (P = fixed)
+    pair_first: IntArray  # (Np,) first observation of every ordered pair sharing a ray, by frame pair
+    pair_second: IntArray  # (Np,) second observation
+    group_bounds: IntArray  # (G + 1,) pairs of one frame pair are pair_*[bounds[g]:bounds[g + 1]]
+    group_index: IntArray  # (G, L, L) flat index of each frame pair's block in the (P+1, P+1) matrix
+
+
+def _sparse_structure(obs: _PreparedObservations, layout: _Layout, n_rays: int) -> _SparseStructure:
+    by_ray = np.argsort(obs.ray_idx, kind="stable")
+    counts = np.bincount(obs.ray_idx, minlength=n_rays)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    n_of_obs = counts[obs.ray_idx[by_ray]]  # for each observation (in ray order): its ray's count
+    first = np.repeat(by_ray, n_of_obs)
+    group_start = np.repeat(starts[obs.ray_idx[by_ray]], n_of_obs)
+    within = np.arange(len(first)) - np.repeat(np.cumsum(n_of_obs) - n_of_obs, n_of_obs)
+    second = by_ray[group_start + within]
+    # Sort the pairs by (frame of first, frame of second): one GEMM per frame pair.
+    n_frames = len(layout.local)
+    key = obs.frame_idx[first] * n_frames + obs.frame_idx[second]
+    order = np.argsort(key, kind="stable")
+    first, second, key = first[order], second[order], key[order]
+    cut = np.flatnonzero(np.diff(key)) + 1
+    bounds = np.concatenate([[0], cut, [len(key)]]).astype(np.intp)
+    f1, f2 = np.divmod(key[bounds[:-1]], n_frames)
+    P1 = layout.n_params + 1
+    index = layout.local[f1][:, :, None] * P1 + layout.local[f2][:, None, :]
+    local = np.ascontiguousarray(layout.local[obs.frame_idx].T)
+    return _SparseStructure(obs.ray_idx, local, first, second, bounds, index)
+
+
 @dataclass
 class _Normal:
-    """Normal equations in block form: U (P, P), W (P, 2, m), V (3, m) as (v00, v01, v11) per ray,
-    gradients g_cam (P,) and g_ray (2, m)."""
+    """Normal equations in block form: U (P, P), the camera-ray coupling W, V (3, m) as
+    (v00, v01, v11) per ray, gradients g_cam (P,) and g_ray (2, m)."""
 
     U: Array
-    W: Array
+    W: _DenseCoupling | _SparseCoupling
     V: Array
     g_cam: Array
     g_ray: Array
+
+
+def _choose_coupling(
+    obs: _PreparedObservations, layout: _Layout, n_rays: int, schur: str
+) -> IntArray | _SparseStructure:
+    """Dense W for long tracks, per-observation-pair accumulation for short ones (keyframe pairs).
+
+    Cost model: the dense product is P^2 2m flops in BLAS; the sparse one ~50x more per entry of its
+    L^2 sum_j n_j^2 pair blocks (gather, multiply, scatter).
+    """
+    if schur not in ("auto", "dense", "sparse"):
+        raise ValueError(f"schur must be 'auto', 'dense' or 'sparse', not {schur!r}")
+    P, L = layout.n_params, layout.local.shape[1]
+    pairs = float(np.sum(np.bincount(obs.ray_idx, minlength=n_rays).astype(float) ** 2))
+    sparse = schur == "sparse" or (schur == "auto" and 50.0 * pairs * L * L < 2.0 * P * P * n_rays)
+    return _sparse_structure(obs, layout, n_rays) if sparse else _coupling_index(obs, layout, n_rays)
 
 
 def _coupling_index(obs: _PreparedObservations, layout: _Layout, n_rays: int) -> IntArray:
@@ -285,8 +395,10 @@ def _normal_equations(
     layout: _Layout,
     n_rays: int,
     prior_grad: tuple[Array, Array],
-    w_index: IntArray,
+    coupling: IntArray | _SparseStructure,
 ) -> _Normal:
+    """Gauss-Newton normal equations J^T J, J^T r in block form; coupling is the dense W index of
+    `_coupling_index` or the structure of `_sparse_structure`."""
     L = layout.local.shape[1]
     P1 = layout.n_params + 1
     # Camera blocks: every observation of frame i shares the frame's local index list (GEMMs per frame).
@@ -318,13 +430,17 @@ def _normal_equations(
         ]
     )
     W_obs = J_cam[0][:, None, :] * J_ray[0][None] + J_cam[1][:, None, :] * J_ray[1][None]
-    W = np.bincount(w_index.ravel(), weights=W_obs.ravel(), minlength=P1 * 2 * n_rays).reshape(P1, 2, n_rays)
+    if isinstance(coupling, _SparseStructure):
+        W: _DenseCoupling | _SparseCoupling = _SparseCoupling(W_obs, coupling, P1 - 1, n_rays)
+    else:
+        dense = np.bincount(coupling.ravel(), weights=W_obs.ravel(), minlength=P1 * 2 * n_rays)
+        W = _DenseCoupling(dense.reshape(P1, 2, n_rays)[:-1])
     # MAP prior of eq. 27: diagonal Gauss-Newton terms on the principal point unknowns.
     prior_r, prior_J = prior_grad
     if len(prior_r):
         U[layout.prior_index, layout.prior_index] += prior_J**2
         g_cam[layout.prior_index] += prior_J * prior_r
-    return _Normal(U[:-1, :-1], W[:-1], V, g_cam[:-1], g_ray)
+    return _Normal(U[:-1, :-1], W, V, g_cam[:-1], g_ray)
 
 
 def _inverse_blocks(V: Array) -> Array:
@@ -341,12 +457,9 @@ def _times_blocks(W: Array, V_inv: Array) -> Array:
     return out
 
 
-def _reduced_system(ne: _Normal, V_inv: Array) -> tuple[Array, Array]:
-    """Schur complement S = U - W V^-1 W^T and the product W V^-1 (P, 2m)."""
-    P = len(ne.U)
-    W = ne.W.reshape(P, -1)
-    WV = _times_blocks(ne.W, V_inv).reshape(P, -1)
-    return ne.U - WV @ W.T, WV
+def _blocks_times(V_inv: Array, g: Array) -> Array:
+    """The symmetric 2x2 block of every ray times a (2, m) ray vector."""
+    return np.stack([V_inv[0] * g[0] + V_inv[1] * g[1], V_inv[1] * g[0] + V_inv[2] * g[1]])
 
 
 def _solve_reduced(S: Array, rhs: Array) -> Array:
@@ -371,18 +484,16 @@ def _schur_step(ne: _Normal, lam: float, D_cam: Array, D_ray: Array) -> tuple[Ar
     V[0] += lam * D_ray[0]
     V[2] += lam * D_ray[1]
     V_inv = _inverse_blocks(V)
-    S, WV = _reduced_system(ne, V_inv)
+    S = ne.U - ne.W.schur(V_inv)
     S[np.diag_indices_from(S)] += lam * D_cam
-    rhs = -ne.g_cam + WV @ ne.g_ray.ravel()
-    d_cam = _solve_reduced(S, rhs)
-    q = ne.g_ray + (ne.W.reshape(len(d_cam), -1).T @ d_cam).reshape(2, -1)
-    d_ray = -np.stack([V_inv[0] * q[0] + V_inv[1] * q[1], V_inv[1] * q[0] + V_inv[2] * q[1]], axis=1)
-    return d_cam, d_ray
+    d_cam = _solve_reduced(S, -ne.g_cam + ne.W.times_rays(V_inv, ne.g_ray))
+    d_ray = -_blocks_times(V_inv, ne.g_ray + ne.W.transpose_times(d_cam))
+    return d_cam, d_ray.T
 
 
 def _reduced_covariance(ne: _Normal) -> Array:
     """Inverse of the undamped reduced camera system (rays marginalised), unit residual variance."""
-    S, _ = _reduced_system(ne, _inverse_blocks(ne.V))
+    S = ne.U - ne.W.schur(_inverse_blocks(ne.V))
     P = len(S)
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
     Ss = S / d[:, None] / d[None, :]
@@ -467,6 +578,7 @@ def bundle_adjust(
     f_min: float | None = None,
     tolerance: float = 1e-10,
     analyse: bool = True,
+    schur: str = "auto",
 ) -> SelfCalibrationResult:
     """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
 
@@ -479,6 +591,8 @@ def bundle_adjust(
     of the image width). Uncertainties are 1-sigma from the reduced normal equations scaled by the
     residual variance; `residual` is the rms reprojection error in pixels. With analyse, the result
     carries a MotionReport (section 6) and ok is False when the motion is not well posed.
+    schur: how the rays are eliminated, 'dense' (rays seen in many frames), 'sparse' (rays seen in
+    few frames, e.g. keyframe pairs) or 'auto' (by a cost estimate); the result is the same.
     """
     K0 = np.asarray(K_init, dtype=float).reshape(-1, 3, 3)
     R_in = np.asarray(R_init, dtype=float).reshape(-1, 3, 3)
@@ -516,7 +630,7 @@ def bundle_adjust(
         prior = (mean, sigma, float(noise_sigma))
     layout = _layout(model, n, prior is not None)
     result = _levenberg_marquardt(
-        state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model
+        state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model, schur
     )
     if analyse:
         result.motion = analyse_motion(result.R, result.K, image_size, sigma_f=result.sigma_f)
@@ -541,6 +655,7 @@ def _levenberg_marquardt(
     f_min: float,
     tolerance: float,
     model: IntrinsicsModel,
+    schur: str,
 ) -> SelfCalibrationResult:
     """Sparse LM with Marquardt's diagonal damping and Nielsen's damping update."""
     r, Y = _residuals(state, obs)
@@ -548,13 +663,13 @@ def _levenberg_marquardt(
     cost = _cost(r, prior_terms[0])
     initial_cost = cost
     exact_cost = 1e-20 * r.shape[1]  # rms below 1e-10 px: nothing left to fit
-    w_index = _coupling_index(obs, layout, n_rays)
+    coupling = _choose_coupling(obs, layout, n_rays, schur)
     lam, nu = 1e-6, 2.0
     iterations, message = 0, "maximum iterations reached"
     ne = None
     for iterations in range(1, max_iterations + 1):
         J_cam, J_ray = _jacobians(state, obs, Y, layout)
-        ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, w_index)
+        ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, coupling)
         D_cam = np.maximum(np.diag(ne.U), 1e-12 * max(np.diag(ne.U).max(), 1e-300))
         D_ray = np.maximum(ne.V[[0, 2]], 1e-12)  # (2, m) diagonal of the ray blocks
         accepted = False
@@ -593,7 +708,7 @@ def _levenberg_marquardt(
 
     # Uncertainty from the undamped reduced system at the solution (rays marginalised).
     J_cam, J_ray = _jacobians(state, obs, Y, layout)
-    ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, w_index)
+    ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, coupling)
     n_obs = r.shape[1]
     dof = max(2 * n_obs + len(prior_terms[0]) - layout.n_params - 2 * n_rays, 1)
     variance = cost / dof
