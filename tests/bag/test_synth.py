@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from ptz_selfcal import topics
 from ptz_selfcal.core.distortion import division_corner_shift, division_distort, division_undistort
 from ptz_selfcal.core.geometry import apply_homography, infinite_homography, ptz_rotation, relative_rotation
 from ptz_selfcal.core.render import CameraProfile, ZoomEncoder, focal_from_hfov
@@ -89,7 +90,7 @@ def test_topics_counts_and_stamps(bags: dict[str, Path]) -> None:
     assert [t for t, _ in images] == expected  # bag time = header stamp
     for topic in ("/ptz/ground_truth/camera_info", "/ptz/ground_truth/joint_states"):
         assert [stamp_ns(m) for _, m in msgs[topic]] == expected  # one per image, same stamp
-    assert all(m.format == "jpeg" and m.header.frame_id == "ptz_optical_frame" for _, m in images)
+    assert all(m.format == "jpeg" and m.header.frame_id == topics.CAMERA_FRAME_ID for _, m in images)
     first = cv2.imdecode(images[0][1].data, cv2.IMREAD_UNCHANGED)
     assert first.shape == (H, W, 3)
     # encoders: 15 Hz, bracketing every image stamp + 40 ms lag
@@ -264,3 +265,13 @@ def test_cli_process_fails_cleanly(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
     assert "no such file" in proc.stderr
+
+
+def test_namespace_and_sqlite3(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "cam1"
+    assert synth(monkeypatch, out, "--namespace", "/cam1", "--frames", "3", "--storage", "sqlite3") == 0
+    with BagReader(out) as reader:
+        names = {t.name: t.count for t in reader.topics()}
+    assert names["/cam1/ptz/image_raw/compressed"] == 3 and names["/cam1/ptz/ground_truth/camera_info"] == 3
+    assert all(n.startswith("/cam1/ptz/") for n in names) and len(names) == 4
+    assert any(p.suffix == ".db3" for p in out.iterdir())

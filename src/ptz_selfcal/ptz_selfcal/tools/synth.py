@@ -1,15 +1,16 @@
 """`ptz-selfcal synth PANORAMA OUT_BAG`: a PTZ camera rendered from an equirectangular panorama.
 
-Writes a ROS 2 bag (mcap by default) with the topics of DESIGN.md section 3 (NS = --namespace, /ptz):
-  NS/image_raw/compressed        sensor_msgs/CompressedImage (--format jpeg|png), or
-  NS/image_raw                   sensor_msgs/Image (--format mono8|bgr8)
-  NS/joint_states                sensor_msgs/JointState: encoders pan, tilt (rad), zoom (counts), own rate,
+Writes a ROS 2 bag (mcap by default) with the topics of DESIGN.md section 3 and ptz_selfcal/topics.py
+(NS = --namespace, default none: /ptz/...):
+  NS/ptz/image_raw/compressed    sensor_msgs/CompressedImage (--format jpeg|png), or
+  NS/ptz/image_raw               sensor_msgs/Image (--format mono8|bgr8)
+  NS/ptz/joint_states            sensor_msgs/JointState: encoders pan, tilt (rad), zoom (counts), own rate,
                                  lag and noise (core/render.py EncoderModel: stamp t = state at t - lag,
                                  so an ingest's time_offset is -lag)
-  NS/ground_truth/camera_info    sensor_msgs/CameraInfo per image, same stamp: the true K, P = [K|0],
+  NS/ptz/ground_truth/camera_info  sensor_msgs/CameraInfo per image, same stamp: the true K, P = [K|0],
                                  R = I; distortion_model "plumb_bob" with D = 0 when the lens has no
                                  distortion, else "division" with D = [lam] (exact: core/distortion.py)
-  NS/ground_truth/joint_states   sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
+  NS/ptz/ground_truth/joint_states sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
 and OUT_BAG/synth_params.yaml (every parameter, for evaluation and reproduction). The bag is written to
 a temporary directory beside OUT_BAG and renamed at the end: nothing is left half-written. The same
 arguments give the same bytes.
@@ -34,7 +35,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ptz_selfcal.core.distortion import DIVISION, PLUMB_BOB
+from ptz_selfcal import topics
+from ptz_selfcal.core.distortion import PLUMB_BOB
 from ptz_selfcal.core.render import (
     CameraProfile,
     CameraState,
@@ -51,11 +53,10 @@ from ptz_selfcal.tools.cli import CliError
 
 FORMATS = ("jpeg", "png", "mono8", "bgr8")
 DEFAULT_START = 1_767_225_600  # 2026-01-01T00:00:00Z: a fixed epoch keeps the bytes reproducible
-JOINTS = ("pan", "tilt", "zoom")
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
-INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-JOINT_TYPE = "sensor_msgs/msg/JointState"
+IMAGE_TYPE = topics.TYPES[topics.IMAGE_RAW]
+COMPRESSED_TYPE = topics.TYPES[topics.IMAGE_COMPRESSED]
+INFO_TYPE = topics.TYPES[topics.GT_CAMERA_INFO]
+JOINT_TYPE = topics.TYPES[topics.JOINT_STATES]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -108,8 +109,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--brightness-drift", type=float, default=0.10, help="gain amplitude (0.10 = +-10%%)")
     g.add_argument("--interpolation", choices=("linear", "cubic"), default="linear", help="panorama sampling")
     g = parser.add_argument_group("output")
-    g.add_argument("--namespace", default="/ptz", help="topic prefix (default /ptz)")
-    g.add_argument("--frame-id", default="ptz_optical_frame", help="image header frame_id")
+    g.add_argument(
+        "--namespace", default="/", help="namespace of the camera's topics, e.g. /cam1 (default /)"
+    )
+    g.add_argument(
+        "--frame-id", default=topics.CAMERA_FRAME_ID, help=f"image frame_id ({topics.CAMERA_FRAME_ID})"
+    )
     g.add_argument("--seed", type=int, default=0, help="random seed (same seed = same bytes)")
     g.add_argument(
         "--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (default mcap)"
@@ -262,7 +267,7 @@ def _header(types: Any, stamp_ns: int, frame_id: str) -> Any:
 def camera_info_msg(types: Any, header: Any, state: CameraState, i: int, width: int, height: int) -> Any:
     K = state.K(i)
     lam = float(state.lam[i])
-    model, d = (DIVISION, [lam]) if lam != 0.0 else (PLUMB_BOB, [0.0] * 5)
+    model, d = (topics.GT_DIVISION_MODEL, [lam]) if lam != 0.0 else (PLUMB_BOB, [0.0] * 5)
     P = np.hstack([K, np.zeros((3, 1))])
     roi = types["sensor_msgs/msg/RegionOfInterest"](
         x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
@@ -278,7 +283,7 @@ def joint_state_msg(types: Any, header: Any, values: tuple[float, float, float])
     empty = np.zeros(0, dtype=np.float64)
     return types[JOINT_TYPE](
         header=header,
-        name=list(JOINTS),
+        name=list(topics.JOINT_NAMES),
         position=np.array(values, dtype=np.float64),
         velocity=empty,
         effort=empty,
@@ -369,13 +374,10 @@ class Topics:
     @classmethod
     def for_args(cls, args: argparse.Namespace) -> Topics:
         ns = args.namespace.rstrip("/")
+        names = (topics.JOINT_STATES, topics.GT_CAMERA_INFO, topics.GT_JOINT_STATES)
         if args.format in ("jpeg", "png"):
-            return cls(f"{ns}/image_raw/compressed", COMPRESSED_TYPE, *cls._others(ns))
-        return cls(f"{ns}/image_raw", IMAGE_TYPE, *cls._others(ns))
-
-    @staticmethod
-    def _others(ns: str) -> tuple[str, str, str]:
-        return f"{ns}/joint_states", f"{ns}/ground_truth/camera_info", f"{ns}/ground_truth/joint_states"
+            return cls(f"{ns}/{topics.IMAGE_COMPRESSED}", COMPRESSED_TYPE, *(f"{ns}/{n}" for n in names))
+        return cls(f"{ns}/{topics.IMAGE_RAW}", IMAGE_TYPE, *(f"{ns}/{n}" for n in names))
 
     def types(self) -> list[tuple[str, str]]:
         return [
