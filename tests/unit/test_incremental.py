@@ -141,3 +141,28 @@ def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
     assert worst < 1e-6
     early, late = np.median(times[1:1000]), np.median(times[-1000:])
     assert late < 3.0 * early + 1e-4
+
+
+def test_near_ambiguous_solution_is_kept_but_reported() -> None:
+    """Config B, varying pp, sigma = 2 px (section 6.2): the estimate is kept as the best available,
+    with state DEGENERATE_MOTION and a large sigma_f, never as CONVERGED."""
+    from ptz_selfcal.core.homography import estimate_homography
+
+    K, R, _ = sequence(30, radius_deg=3.5, f0=1200.0, f1=2000.0)
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-1.5, 1.5, (1000, 3)) + np.array([0.0, 0.0, 5.0])
+    pts, vis = [], []
+    for Kj, Rj in zip(K, R):
+        p = X @ (Kj @ Rj).T
+        p = p[:, :2] / p[:, 2:]
+        vis.append(np.all((p >= 0.0) & (p <= [SIZE[0] - 1.0, SIZE[1] - 1.0]), axis=1))
+        pts.append(p + rng.normal(0.0, 2.0, p.shape))
+    calibrator = IncrementalCalibrator(SIZE, SQUARE_VARYING_PP, solve_interval=29)
+    for j in range(1, 30):
+        m = vis[0] & vis[j]
+        state = calibrator.add_keyframe(j, estimate_homography(pts[0][m], pts[j][m]))
+    assert state is CalibrationState.DEGENERATE_MOTION
+    assert calibrator.calibrated
+    K_j, _, sigma_f = calibrator.frame_intrinsics(np.eye(3))
+    assert sigma_f / K_j[1, 1] > 0.02
+    assert "near_ambiguous" in calibrator.message

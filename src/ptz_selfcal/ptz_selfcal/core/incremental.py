@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.core.degeneracy import (
     STATUS_INSUFFICIENT_ROTATION,
+    STATUS_NEAR_AMBIGUOUS,
     STATUS_OK,
     MotionReport,
     analyse_motion,
@@ -179,7 +180,9 @@ class IncrementalCalibrator:
     def frame_intrinsics(self, H_ref_to_frame: ArrayLike) -> tuple[Array, Array, float]:
         """(K_j, R_j, sigma_f_j) of any frame in O(1) from the reference calibration (eq. 20).
 
-        sigma_f_j = f_j sigma_f0 / f_0: the common-scale term of section 6.2 dominates.
+        sigma_f_j = f_j sigma_f0 / f_0: the common-scale term of section 6.2 dominates. Before a
+        calibration is accepted K_j comes from the prior K_0 and sigma_f_j is NaN. Raises
+        SelfCalibrationError when H is inconsistent with the model (non-positive f^2 or DIAC).
         """
         H = normalise_homography(H_ref_to_frame)
         K_ref = self.reference_K
@@ -298,7 +301,10 @@ class IncrementalCalibrator:
     # ---- internals ------------------------------------------------------------------------
     def _accept(self, result: SelfCalibrationResult, seconds: float) -> None:
         motion = result.motion
-        if not result.ok:
+        solver_ok = bool(result.info.get("solver_ok", result.ok))
+        near_ambiguous = motion is not None and motion.status == STATUS_NEAR_AMBIGUOUS
+        uncertain = not result.ok and solver_ok and near_ambiguous  # 6.2: best estimate, low confidence
+        if not result.ok and not uncertain:
             self.message = result.message
             degenerate = motion is not None and motion.status not in (STATUS_OK, STATUS_INSUFFICIENT_ROTATION)
             if degenerate:
@@ -317,7 +323,11 @@ class IncrementalCalibrator:
         )
         for kf, K in zip(self.keyframes, result.K[1:]):
             kf.K = K.copy()
-        self.message = ""
+        self.message = result.message
+        if uncertain:
+            self._stable_solves = 0
+            self.state = CalibrationState.DEGENERATE_MOTION
+            return
         change = np.inf if previous is None else abs(result.K[0, 1, 1] / previous - 1.0)
         self._stable_solves = self._stable_solves + 1 if change < self.converge_tol else 0
         converged = self._stable_solves >= 2

@@ -104,7 +104,7 @@ def linear_selfcalibration(
     zero_skew: bool = True,
     square_pixels: bool = True,
     known_principal_point: tuple[float, float] | None = None,
-    nominal_focal: float | None = None,
+    nominal_focal: float | str | None = None,
     rank_tolerance: float = 1e-9,
     min_gap: float = 1.5,
     analyse: bool = True,
@@ -115,12 +115,26 @@ def linear_selfcalibration(
     known principal point (omega_13 = omega_23 = 0 in coordinates centred on it). Square pixels and a
     known principal point imply zero skew, as in the paper. Raises SelfCalibrationError when the
     constraints are insufficient (rank-deficient system) or omega is not positive definite.
+    nominal_focal: the coordinate scale (default the image width); "auto" re-solves with the first
+    estimate's median focal length, which removes most of the varying-pp bias (measured, config B).
     With `analyse`, the result carries the geometric section-6 MotionReport (no sigma_f: the
     linear method has none) and ok is False when the motion is not well posed.
     """
     H = np.asarray(H, dtype=float).reshape(-1, 3, 3)
     if not (zero_skew or square_pixels or known_principal_point is not None):
         raise SelfCalibrationError("no constraint selected")
+    if nominal_focal == "auto":
+        # Two passes: the bias with a varying principal point shrinks as the scale nears the true
+        # focal length (DESIGN.md pitfalls), so re-normalise by the first pass's median focal.
+        first = linear_selfcalibration(
+            H,
+            image_size,
+            zero_skew=zero_skew,
+            square_pixels=square_pixels,
+            known_principal_point=known_principal_point,
+            analyse=False,
+        )
+        nominal_focal = float(np.median(first.K[:, 1, 1]))
     nominal = float(nominal_focal or image_size[0])
     centre = known_principal_point if known_principal_point is not None else image_centre(image_size)
     N = normalising_transform(centre, nominal)
