@@ -13,7 +13,7 @@ Writes a ROS 2 bag (mcap by default) with the topics of DESIGN.md section 3 and 
   NS/ptz/ground_truth/joint_states sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
 and OUT_BAG/synth_params.yaml (every parameter, for evaluation and reproduction). The bag is written to
 a temporary directory beside OUT_BAG and renamed at the end: nothing is left half-written. The same
-arguments give the same bytes.
+arguments (and bag name: mcap stores it) give the same bytes, whatever --jobs.
 """
 
 from __future__ import annotations
@@ -405,7 +405,7 @@ def encoder_messages(types: Any, setup: Setup, seed: int) -> deque[tuple[int, An
 def frame_messages(
     types: Any,
     args: argparse.Namespace,
-    topics: Topics,
+    names: Topics,
     truth: CameraState,
     counts: np.ndarray,
     i: int,
@@ -417,12 +417,12 @@ def frame_messages(
     gt = (float(truth.pan[i]), float(truth.tilt[i]), float(counts[i]))
     return [
         (
-            topics.image,
-            topics.image_type,
+            names.image,
+            names.image_type,
             image_msg(types, header, args.format, payload, (args.width, args.height)),
         ),
-        (topics.camera_info, INFO_TYPE, camera_info_msg(types, header, truth, i, args.width, args.height)),
-        (topics.truth, JOINT_TYPE, joint_state_msg(types, header, gt)),
+        (names.camera_info, INFO_TYPE, camera_info_msg(types, header, truth, i, args.width, args.height)),
+        (names.truth, JOINT_TYPE, joint_state_msg(types, header, gt)),
     ]
 
 
@@ -431,24 +431,24 @@ def write_bag(args: argparse.Namespace, bag_path: Path, panorama: Panorama, setu
     from ptz_selfcal.tools.bagio import BagWriter, typestore
 
     types = typestore().types
-    topics = Topics.for_args(args)
+    names = Topics.for_args(args)
     truth = setup.profile.state(setup.frame_times)
     counts = setup.zoom.counts(truth.f)  # exact zoom counts of the ground truth
     encoders = encoder_messages(types, setup, args.seed)
     progress = Progress(args.frames, args.quiet)
     with BagWriter(bag_path, storage=args.storage) as writer:
-        for topic, msgtype in topics.types():
+        for topic, msgtype in names.types():
             writer.add_topic(topic, msgtype)
         frames = ordered_map(frame_renderer(args, panorama, setup, truth), args.frames, args.jobs)
         for i, payload in enumerate(frames):
             t_ns = setup.start_ns + round(float(truth.t[i]) * 1e9)
             while encoders and encoders[0][0] <= t_ns:
-                writer.write(topics.encoders, JOINT_TYPE, *encoders.popleft())
-            for topic, msgtype, msg in frame_messages(types, args, topics, truth, counts, i, t_ns, payload):
+                writer.write(names.encoders, JOINT_TYPE, *encoders.popleft())
+            for topic, msgtype, msg in frame_messages(types, args, names, truth, counts, i, t_ns, payload):
                 writer.write(topic, msgtype, t_ns, msg)
             progress.update(i + 1)
         for t_ns, msg in encoders:
-            writer.write(topics.encoders, JOINT_TYPE, t_ns, msg)
+            writer.write(names.encoders, JOINT_TYPE, t_ns, msg)
 
 
 def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) -> str:
