@@ -142,6 +142,7 @@ class OpenCVResult:
     K: Array  # (m, 3, 3)
     R: Array  # (m, 3, 3) world-to-camera (OpenCV's CameraParams.R is camera-to-world)
     wall_time: float  # seconds, whole pipeline
+    cpu_time: float  # process CPU seconds (all threads), whole pipeline
     ok: bool = True
     message: str = ""
     stage_times: dict[str, float] = field(default_factory=dict)
@@ -192,6 +193,7 @@ def run_stitching_calibration(
     config = config or OpenCVConfig()
     times: dict[str, float] = {}
     t0 = time.perf_counter()
+    c0 = time.process_time()
     finder = _finder(config)
     features = [cv2.detail.computeImageFeatures2(finder, img) for img in images]
     for i, feat in enumerate(features):
@@ -222,9 +224,10 @@ def run_stitching_calibration(
         ok, cameras = _adjust(adjuster, features, matches, cameras, config.reproj_mask, config)
         message = "" if ok else "BundleAdjusterReproj failed"
     t5 = time.perf_counter()
+    cpu = time.process_time() - c0
     times.update(features=t1 - t0, matching=t2 - t1, estimator=t3 - t2, ray=t4 - t3, reproj=t5 - t4)
     if not ok:
         empty = np.empty((0, 3, 3))
-        return OpenCVResult(keep[:0], empty, empty, t5 - t0, False, message, times)
+        return OpenCVResult(keep[:0], empty, empty, t5 - t0, cpu, False, message, times)
     K, R = _camera_matrices(cameras)
-    return OpenCVResult(keep, K, R, t5 - t0, True, "", times)
+    return OpenCVResult(keep, K, R, t5 - t0, cpu, True, "", times)

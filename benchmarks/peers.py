@@ -62,6 +62,7 @@ STRIDE = 5  # OpenCV sees every 5th frame (issue 8)
 FPS = 15.0
 BA_POINTS_PER_LINK = 40  # online bundle adjustment: correspondences kept per keyframe link
 BA_ITERATIONS = 10
+SESSION_BUDGET_S = 0.5  # the calibrator node's default reoptimise_budget
 # A fixed lens (the real sets): constant unknown focal length and principal point, square pixels.
 FIXED_LENS = IntrinsicsModel(focal=ParamMode.CONSTANT)
 RESULTS = Path(__file__).resolve().parent / "results" / "peers.txt"
@@ -175,9 +176,10 @@ class MethodResult:
     frame_idx: IntArray  # sequence frames with an estimate
     K: Array  # (m, 3, 3)
     R: Array  # (m, 3, 3), any common gauge
-    ms_per_frame: float
+    ms_per_frame: float  # wall time
     note: str = ""
     extra: dict = field(default_factory=dict)
+    cpu_ms_per_frame: float = float("nan")  # process CPU time
 
 
 def failed(method: str, online: bool, note: str) -> MethodResult:
@@ -195,7 +197,8 @@ def run_opencv(seq: Sequence, features: str) -> MethodResult:
     if not res.ok:
         return failed(name, False, res.message)
     ms = 1000.0 * res.wall_time / len(images)
-    return MethodResult(name, False, seq.eval_idx[res.indices], res.K, res.R, ms, extra=res.stage_times)
+    cpu = 1000.0 * res.cpu_time / len(images)
+    return MethodResult(name, False, seq.eval_idx[res.indices], res.K, res.R, ms, "", res.stage_times, cpu)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -207,6 +210,7 @@ class Tracking:
     reference_id: list[int | None]
     seconds: float
     results: list = field(default_factory=list)
+    cpu_seconds: float = float("nan")
 
 
 def working_scale(size: tuple[int, int]) -> float:
@@ -223,44 +227,49 @@ def to_working(image: np.ndarray, scale: float) -> np.ndarray:
 
 class PhotoTracker:
     """Front-end for photographs (the real sets; HomographyTracker's KLT expects video): ORB matches and
-    MAGSAC + LM homographies (core.features) between consecutive images, chained to the first image;
-    every image becomes a keyframe linked to its predecessor. Same TrackResult as HomographyTracker."""
+    MAGSAC + LM homographies (core.features) from every new image to every earlier one, as OpenCV's
+    matcher does; H_ref chains through the best-matched earlier image and every successful match is a
+    keyframe link (closing the loop of a 360 degree set for the bundle adjustment). Same TrackResult
+    as HomographyTracker; every image is a keyframe."""
 
-    def __init__(self, n_features: int = 2000, ratio: float = 0.8, threshold: float = 2.0) -> None:
+    def __init__(
+        self, n_features: int = 2000, ratio: float = 0.8, threshold: float = 2.0, min_inliers: int = 30
+    ):
         self._orb = cv2.ORB_create(nfeatures=n_features)
         self._ratio = ratio
         self._threshold = threshold
-        self._previous = None  # (frame index, descriptors, H_ref)
+        self._min_inliers = min_inliers
+        self._seen: list[tuple[int, tuple, Array]] = []  # (frame index, (points, descriptors), H_ref)
         self._index = -1
+
+    def _link(self, j: int, prev: tuple, desc: tuple, i: int, scale: float) -> KeyframeLink | None:
+        a, b = ratio_matches(prev, desc, self._ratio)
+        fit = robust_homography(
+            a, b, usac_params(self._threshold * scale, 0, 2000, 0.999), self._min_inliers, 20
+        )
+        if fit is None:
+            return None
+        pa = (np.asarray(a, float)[fit.inliers] + 0.5) / scale - 0.5
+        pb = (np.asarray(b, float)[fit.inliers] + 0.5) / scale - 0.5
+        return KeyframeLink(j, i, homography_work_to_full(fit.H, scale), pa, pb, fit.rms / scale)
 
     def track(self, image: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
         self._index += 1
         i = self._index
         keypoints, descriptors = self._orb.detectAndCompute(image, None)
         desc = (np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2), descriptors)
-        if self._previous is None:
-            self._previous = (i, desc, np.eye(3))
-            return TrackResult(
-                TrackingState.NEW_KEYFRAME, i, stamp, np.eye(3), np.eye(3), i, 0, 300, 300, 0.0
-            )
-        j, prev, H_prev = self._previous
-        a, b = ratio_matches(prev, desc, self._ratio)
-        params = usac_params(self._threshold * scale, 0, 2000, 0.999)
-        fit = robust_homography(a, b, params, 20, 20)
-        if fit is None:
-            return TrackResult(TrackingState.TRACKING_LOST, i, stamp, None, None, None, 0, 0, len(a), np.nan)
-        H = homography_work_to_full(fit.H, scale)
-        H_ref = H @ H_prev
-        full = (
-            (np.asarray(a, float)[fit.inliers] + 0.5) / scale - 0.5,
-            (np.asarray(b, float)[fit.inliers] + 0.5) / scale - 0.5,
-        )
-        link = KeyframeLink(j, i, H, full[0], full[1], fit.rms / scale)
-        self._previous = (i, desc, H_ref)
-        n_in = int(fit.inliers.sum())
-        return TrackResult(
-            TrackingState.NEW_KEYFRAME, i, stamp, H_ref, H, i, 0, n_in, len(a), fit.rms / scale, (link,)
-        )
+        if not self._seen:
+            self._seen.append((i, desc, np.eye(3)))
+            return TrackResult(TrackingState.NEW_KEYFRAME, i, stamp, np.eye(3), np.eye(3), i, 0, 0, 0, 0.0)
+        links = [(link, H_j) for j, prev, H_j in self._seen if (link := self._link(j, prev, desc, i, scale))]
+        if not links:
+            return TrackResult(TrackingState.TRACKING_LOST, i, stamp, None, None, None, 0, 0, 0, np.nan)
+        best, H_best = max(links, key=lambda lh: (lh[0].source_id == i - 1, lh[0].inlier_count))
+        H_ref = best.H @ H_best
+        self._seen.append((i, desc, H_ref))
+        n_in, rms = best.inlier_count, best.rms_transfer_error
+        result = (TrackingState.NEW_KEYFRAME, i, stamp, H_ref, best.H, i, 0, n_in, n_in, rms)
+        return TrackResult(*result, tuple(link for link, _ in links))
 
 
 def ratio_matches(a: tuple, b: tuple, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -282,6 +291,7 @@ def track_sequence(seq: Sequence, on_frame: Callable | None = None) -> Tracking:
     refs: list[int | None] = []
     results = []
     t0 = time.perf_counter()
+    c0 = time.process_time()
     for i, frame in enumerate(seq.frames):
         work = to_working(frame, scale)
         result = tracker.track(work, scale, i / FPS)
@@ -290,7 +300,7 @@ def track_sequence(seq: Sequence, on_frame: Callable | None = None) -> Tracking:
         results.append(result)
         if on_frame is not None:
             on_frame(i, frame, scale, result)
-    return Tracking(H_ref, refs, time.perf_counter() - t0, results)
+    return Tracking(H_ref, refs, time.perf_counter() - t0, results, time.process_time() - c0)
 
 
 def homographies_at(seq: Sequence, tracking: Tracking) -> tuple[IntArray, Array]:
@@ -312,10 +322,10 @@ def homographies_at(seq: Sequence, tracking: Tracking) -> tuple[IntArray, Array]
 # --------------------------------------------------------------------------------------------------
 # Rows on the tracker's homographies
 # --------------------------------------------------------------------------------------------------
-def _timed(fn: Callable[[], tuple[Array, Array]]) -> tuple[Array, Array, float]:
-    t0 = time.perf_counter()
+def _timed(fn: Callable[[], tuple[Array, Array]]) -> tuple[Array, Array, float, float]:
+    t0, c0 = time.perf_counter(), time.process_time()
     K, R = fn()
-    return K, R, time.perf_counter() - t0
+    return K, R, time.perf_counter() - t0, time.process_time() - c0
 
 
 def centred(H: Array, size: tuple[int, int]) -> Array:
@@ -381,21 +391,44 @@ def transferred_observations(
     return np.concatenate(frames), np.concatenate(rays), np.concatenate(xys)
 
 
-def bundle_rows(H: Array, size: tuple[int, int], init: tuple[Array, Array]) -> dict[str, Callable]:
+def link_observations(tracking: Tracking, idx: IntArray) -> tuple[IntArray, IntArray, Array]:
+    """BA observations from the tracker's keyframe links between evaluation frames (real measurements)."""
+    from ptz_selfcal.core.bundle import pair_observations
+
+    pos = {int(f): k for k, f in enumerate(idx)}
+    links = {(lk.source_id, lk.target_id): lk for r in tracking.results for lk in r.links}
+    matches = [
+        (pos[s], pos[t], lk.source_points, lk.target_points)
+        for (s, t), lk in links.items()
+        if s in pos and t in pos
+    ]
+    obs = pair_observations(matches)
+    return obs.frame_idx, obs.ray_idx, obs.xy
+
+
+def bundle_rows(
+    obs: tuple, size: tuple[int, int], inits: dict[str, tuple[Array, Array]]
+) -> dict[str, Callable]:
+    """MLE (eq. 26) and MAP (eq. 27) from the LM solutions; a fixed lens gets its own MLE row."""
     from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior
 
-    obs = transferred_observations(H, size)
+    def run(model: IntrinsicsModel, init: tuple[Array, Array], prior=None) -> Callable:
+        def fn() -> tuple[Array, Array]:
+            r = bundle_adjust(obs, init[0], init[1], size, model, pp_prior=prior, max_iterations=100)
+            return r.K, r.R
 
-    def mle() -> tuple[Array, Array]:
-        r = bundle_adjust(obs, init[0], init[1], size, IntrinsicsModel.square_constant_pp())
-        return r.K, r.R
+        return fn
 
-    def map_() -> tuple[Array, Array]:
+    rows = {}
+    if "const" in inits:
+        rows["BA MLE eq.26 (const pp)"] = run(IntrinsicsModel.square_constant_pp(), inits["const"])
         prior = default_pp_prior(size)
-        r = bundle_adjust(obs, init[0], init[1], size, IntrinsicsModel.square_varying_pp(), pp_prior=prior)
-        return r.K, r.R
-
-    return {"BA MLE eq.26 (const pp)": mle, "BA MAP eq.27 (varying pp, prior)": map_}
+        rows["BA MAP eq.27 (varying pp, prior)"] = run(
+            IntrinsicsModel.square_varying_pp(), inits["const"], prior
+        )
+    if "fixed" in inits:
+        rows["BA MLE eq.26 (const f+pp, fixed lens)"] = run(FIXED_LENS, inits["fixed"])
+    return rows
 
 
 def paper_rows(seq: Sequence, tracking: Tracking) -> list[MethodResult]:
@@ -405,7 +438,7 @@ def paper_rows(seq: Sequence, tracking: Tracking) -> list[MethodResult]:
 
     idx, H = homographies_at(seq, tracking)
     size = seq.size
-    track_ms = 1000.0 * tracking.seconds / len(seq.frames)
+    track_ms = (1000.0 * tracking.seconds / len(seq.frames), 1000.0 * tracking.cpu_seconds / len(seq.frames))
     if len(idx) < 3:
         return [failed("paper methods", False, f"only {len(idx)} tracked evaluation frames")]
 
@@ -443,25 +476,29 @@ def paper_rows(seq: Sequence, tracking: Tracking) -> list[MethodResult]:
         lm_models.append(("LM eq.22, constant f+pp (fixed lens)", FIXED_LENS))
     methods |= dict(lm(name, model) for name, model in lm_models)
     rows = []
-    lm_init = None
+    inits: dict[str, tuple[Array, Array]] = {}
     for name, fn in methods.items():
         rows.append(_solve_row(name, fn, idx, track_ms))
         rows[-1].note = rows[-1].note or notes.get(name, "")
-        if name.startswith("LM eq.22, constant pp") and len(rows[-1].frame_idx):
-            lm_init = (rows[-1].K, rows[-1].R)
-    if lm_init is None:
+        if name.startswith("LM eq.22, constant") and len(rows[-1].frame_idx):
+            inits["fixed" if "fixed" in name else "const"] = (rows[-1].K, rows[-1].R)
+    if not inits:
         return [*rows, failed("BA MLE / MAP", False, "no LM initialisation")]
-    for name, fn in bundle_rows(H, size, lm_init).items():
+    # Real sets: the links' own matches (every image is a keyframe); video: points transferred by H.
+    obs = link_observations(tracking, idx) if seq.fixed_focal else transferred_observations(H, size)
+    for name, fn in bundle_rows(obs, size, inits).items():
         rows.append(_solve_row(name, fn, idx, track_ms))
+        rows[-1].note = rows[-1].note or ("link matches" if seq.fixed_focal else "points transferred by H")
     return rows
 
 
-def _solve_row(name: str, fn: Callable, idx: IntArray, track_ms: float) -> MethodResult:
+def _solve_row(name: str, fn: Callable, idx: IntArray, track_ms: tuple[float, float]) -> MethodResult:
     try:
-        K, R, seconds = _timed(fn)
+        K, R, seconds, cpu = _timed(fn)
     except (SelfCalibrationError, np.linalg.LinAlgError, ValueError) as exc:
         return failed(name, False, str(exc).splitlines()[0][:60])
-    return MethodResult(name, False, idx, K, R, track_ms + 1000.0 * seconds / len(idx))
+    ms = track_ms[0] + 1000.0 * seconds / len(idx)
+    return MethodResult(name, False, idx, K, R, ms, cpu_ms_per_frame=track_ms[1] + 1000.0 * cpu / len(idx))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -506,9 +543,9 @@ def bundle_solver(
                                max_iterations=BA_ITERATIONS)  # fmt: skip
         except SelfCalibrationError:
             return lm
-        if not ba.ok:
+        if not ba.ok and analyse:  # without the motion analysis (a fixed lens) a flag is not a failure
             return lm
-        ba.motion = lm.motion
+        ba.ok, ba.motion = True, lm.motion
         return ba
 
     return solve
@@ -527,8 +564,66 @@ def make_calibrator(seq: Sequence, reference_id: int):
     return calibrator
 
 
-def run_online(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
-    """Frames one by one through HomographyTracker + IncrementalCalibrator (+ BA in the solver seam)."""
+def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
+    """Frames one by one as the nodes run them: HomographyTracker -> CalibratorSession (the calibrator
+    node's logic: IncrementalCalibrator, LM + keyframe MAP bundle adjustment), whose worker step runs
+    inline after every frame with the node's default budget (so the timing holds all the work)."""
+    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput
+
+    session = CalibratorSession()
+    published: dict[int, tuple[Array, Array]] = {}
+    w, h = seq.size
+
+    def on_frame(i: int, frame: np.ndarray, scale: float, result) -> None:
+        for link in result.links:
+            session.add_keyframe_matches(
+                link.target_id, link.source_id, link.target_points, link.source_points
+            )
+        state = result.state.value if hasattr(result.state, "value") else str(result.state)
+        kid = -1 if result.keyframe_id is None else int(result.keyframe_id)
+        ref = "" if result.reference_id is None else str(result.reference_id)
+        out = session.process(FrameInput(i / FPS, result.H_ref, state, w, h, kid, ref))
+        if out.source == "calibration" and out.R is not None:
+            published[i] = (out.K, out.R)
+        session.step(SESSION_BUDGET_S)
+
+    tracking = track_sequence(seq, on_frame)
+    ms = per_frame_ms(tracking, len(seq.frames))
+    rows = [published_row("ptz_selfcal online (nodes' tracker+calibrator)", seq, published, ms)]
+    calibrator = session.calibrator
+    if calibrator is not None:
+        calibrator.reference_id = next((r for r in tracking.reference_id if r is not None), None)
+    rows.append(final_state_row(seq, tracking, calibrator, ms))
+    return rows, tracking
+
+
+def per_frame_ms(tracking: Tracking, n_frames: int) -> tuple[float, float]:
+    """(wall, CPU) milliseconds per frame of a tracking pass (with whatever ran inside it)."""
+    return 1000.0 * tracking.seconds / n_frames, 1000.0 * tracking.cpu_seconds / n_frames
+
+
+def published_row(name: str, seq: Sequence, published: dict, ms: tuple[float, float]) -> MethodResult:
+    """The K published for each evaluation frame after the warm-up (DESIGN.md section 7)."""
+    warm = metrics.warmup_frames(len(seq.frames))
+    idx = np.array([i for i in seq.eval_idx if i in published and i >= warm], dtype=np.intp)
+    if not len(idx):
+        return failed(name, True, "never calibrated")
+    K = np.array([published[i][0] for i in idx])
+    R = np.array([published[i][1] for i in idx])
+    note = f"as published, frames >= {warm}"
+    return MethodResult(name, True, idx, K, R, ms[0], note=note, cpu_ms_per_frame=ms[1])
+
+
+def fixed_lens_intrinsics(calibrator, H: Array) -> tuple[Array, Array]:
+    """A fixed lens: every frame has the reference K; R from the frame's homography."""
+    from ptz_selfcal.core.geometry import rotation_from_homography
+
+    K = calibrator.reference_K
+    return K, rotation_from_homography(H, K, K)
+
+
+def run_fixed_lens(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
+    """Real sets (a fixed lens): IncrementalCalibrator with a constant-focal model, LM + link BA."""
     from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator
 
     calibrator: IncrementalCalibrator | None = None
@@ -543,29 +638,21 @@ def run_online(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
         new = result.state in (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)
         if new and result.keyframe_id is not None and result.keyframe_id != result.reference_id:
             state = calibrator.add_keyframe(result.keyframe_id, result.H_ref, i / FPS, matches=result.links)
-            if seq.fixed_focal and state is CalibrationState.DEGENERATE_MOTION:
+            if state is CalibrationState.DEGENERATE_MOTION:
                 calibrator.reoptimise()  # a fixed lens is calibrated by pan-only motion too
-        K, R, _ = calibrator.frame_intrinsics(result.H_ref)
         if calibrator.calibrated:
-            published[i] = (K, R)
+            published[i] = fixed_lens_intrinsics(calibrator, result.H_ref)
 
     tracking = track_sequence(seq, on_frame)
-    ms = 1000.0 * tracking.seconds / len(seq.frames)
-    name = "ptz_selfcal online (tracker+incremental+BA)"
-    warm = metrics.warmup_frames(len(seq.frames))
-    idx = np.array([i for i in seq.eval_idx if i in published and i >= warm], dtype=np.intp)
-    rows = []
-    if len(idx):
-        K = np.array([published[i][0] for i in idx])
-        R = np.array([published[i][1] for i in idx])
-        rows.append(MethodResult(name, True, idx, K, R, ms, note=f"as published, frames >= {warm}"))
-    else:
-        rows.append(failed(name, True, "never calibrated"))
-    rows.append(final_state_row(seq, tracking, calibrator, ms))
-    return rows, tracking
+    ms = per_frame_ms(tracking, len(seq.frames))
+    name = "ptz_selfcal fixed lens (incremental const f+BA)"
+    rows = [published_row(name, seq, published, ms)]
+    final = final_state_row(seq, tracking, calibrator, ms)
+    final.method = "ptz_selfcal fixed lens, final state"
+    return [*rows, final], tracking
 
 
-def final_state_row(seq: Sequence, tracking: Tracking, calibrator, ms: float) -> MethodResult:
+def final_state_row(seq: Sequence, tracking: Tracking, calibrator, ms: tuple[float, float]) -> MethodResult:
     """Every evaluation frame through the calibrator's final state (O(1) per frame, after the run)."""
     name = "ptz_selfcal final state, all frames"
     if calibrator is None or not calibrator.calibrated:
@@ -574,10 +661,14 @@ def final_state_row(seq: Sequence, tracking: Tracking, calibrator, ms: float) ->
         [i for i in seq.eval_idx if tracking.H_ref[i] is not None
          and tracking.reference_id[i] == calibrator.reference_id], dtype=np.intp,
     )  # fmt: skip
-    KR = [calibrator.frame_intrinsics(tracking.H_ref[i])[:2] for i in idx]
+    if getattr(calibrator.model, "focal", None) is ParamMode.CONSTANT:
+        KR = [fixed_lens_intrinsics(calibrator, tracking.H_ref[i]) for i in idx]
+    else:
+        KR = [calibrator.frame_intrinsics(tracking.H_ref[i])[:2] for i in idx]
     K = np.array([k for k, _ in KR])
     R = np.array([r for _, r in KR])
-    return MethodResult(name, True, idx, K, R, ms, note="end-of-run calibration replayed")
+    note = "end-of-run calibration replayed"
+    return MethodResult(name, True, idx, K, R, ms[0], note=note, cpu_ms_per_frame=ms[1])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -594,6 +685,7 @@ class Row:
     pp_med: float = float("nan")  # pixels
     rot_med: float = float("nan")  # degrees
     ms: float = float("nan")
+    cpu_ms: float = float("nan")
     f_vs_autostitch: float = float("nan")  # percent (median over frames)
     f_vs_opencv: float = float("nan")
     note: str = ""
@@ -601,9 +693,9 @@ class Row:
 
 def evaluate(seq: Sequence, res: MethodResult, f_opencv: float | None) -> Row:
     n_eval = len(seq.eval_idx)
-    row = Row(
-        seq.name, res.method, res.online, f"{len(res.frame_idx)}/{n_eval}", ms=res.ms_per_frame, note=res.note
-    )
+    frames = f"{len(res.frame_idx)}/{n_eval}"
+    row = Row(seq.name, res.method, res.online, frames, ms=res.ms_per_frame, cpu_ms=res.cpu_ms_per_frame)
+    row.note = res.note
     if not len(res.frame_idx):
         return row
     order = np.argsort(res.frame_idx)
@@ -631,7 +723,7 @@ def _fmt(value: float, spec: str) -> str:
 
 HEADER = (
     f"{'input':<11} {'method':<44} {'online':<6} {'frames':>7} {'f med%':>8} {'f p90%':>8} {'pp px':>7} "
-    f"{'rot deg':>8} {'ms/frame':>9} {'f-AS %':>7} {'f-OCV %':>7}  note"
+    f"{'rot deg':>8} {'wall ms':>8} {'cpu ms':>8} {'f-AS %':>7} {'f-OCV %':>7}  note"
 )
 
 
@@ -639,9 +731,14 @@ def format_row(r: Row) -> str:
     return (
         f"{r.input:<11} {r.method[:44]:<44} {'yes' if r.online else 'no':<6} {r.frames:>7} "
         f"{_fmt(r.f_med, '.3f'):>8} {_fmt(r.f_p90, '.3f'):>8} {_fmt(r.pp_med, '.2f'):>7} "
-        f"{_fmt(r.rot_med, '.4f'):>8} {_fmt(r.ms, '.1f'):>9} {_fmt(r.f_vs_autostitch, '.2f'):>7} "
+        f"{_fmt(r.rot_med, '.4f'):>8} {_fmt(r.ms, '.1f'):>8} {_fmt(r.cpu_ms, '.1f'):>8} "
+        f"{_fmt(r.f_vs_autostitch, '.2f'):>7} "
         f"{_fmt(r.f_vs_opencv, '.2f'):>7}  {r.note}"
     ).rstrip()
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if np.isfinite(a) and np.isfinite(b) and b > 0 else float("nan")
 
 
 def target_lines(rows: list[Row]) -> list[str]:
@@ -652,13 +749,12 @@ def target_lines(rows: list[Row]) -> list[str]:
         by_input.setdefault(r.input, {})[r.method] = r
     for name, group in by_input.items():
         ocv = next((r for m, r in group.items() if m.startswith("OpenCV stitching")), None)
-        ours = next((r for r in group.values() if r.online), None)
+        online = [r for r in group.values() if r.online and r.note.startswith("as published")]
+        ours = max(online, key=lambda r: int(r.frames.split("/")[0]), default=None)
         if ocv is None or ours is None:
             continue
-        speed = (
-            ocv.ms / ours.ms if np.isfinite(ocv.ms) and np.isfinite(ours.ms) and ours.ms > 0 else float("nan")
-        )
-        line = f"{name}: speed-up {speed:.0f}x (target >= 100x)"
+        wall, cpu = _ratio(ocv.ms, ours.ms), _ratio(ocv.cpu_ms, ours.cpu_ms)
+        line = f"{name} [{ours.method}]: speed-up {wall:.0f}x wall, {cpu:.0f}x CPU (target >= 100x)"
         if name.startswith("clean") or name.startswith("longfocal"):
             gap = ours.f_p90 - ocv.f_p90
             line += f"; focal p90 ours - OpenCV = {gap:+.3f} points (target <= +0.1)"
@@ -743,7 +839,9 @@ def _raw_image(msg) -> np.ndarray:
 
 
 def run_input(seq: Sequence, features: str, log: Callable[[str], None]) -> list[Row]:
-    online, tracking = run_online(seq)
+    online, tracking = run_session(seq)
+    if seq.fixed_focal:
+        online += run_fixed_lens(seq)[0]
     log(f"  [{seq.name}] tracked {len(seq.frames)} frames in {tracking.seconds:.1f} s")
     ocv = run_opencv(seq, features)
     log(f"  [{seq.name}] OpenCV: {ocv.ms_per_frame:.0f} ms/frame {ocv.note}")
