@@ -196,6 +196,7 @@ class Supervisor:
         self._lock = threading.Lock()
         self._stopping = False
         self.fatal: str | None = None
+        self.final_cpu_seconds: dict[str, float] = {}
         self._log = log or (lambda text: self._write(f"[launch] {text}\n"))
 
     # -- output
@@ -298,9 +299,23 @@ class Supervisor:
     def running(self) -> list[str]:
         return [c.spec.name for c in self.children if c.process is not None and c.process.poll() is None]
 
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU time (user + system) used so far by each running child (Linux /proc)."""
+        out = {}
+        for c in self.children:
+            if c.process is None:
+                continue
+            try:
+                fields = Path(f"/proc/{c.process.pid}/stat").read_text().rsplit(")", 1)[1].split()
+                out[c.spec.name] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            except (OSError, ValueError, IndexError):
+                pass
+        return out
+
     def stop(self, timeout: float = 5.0, term_timeout: float = 3.0) -> dict[str, int | None]:
         """SIGINT every child, wait up to `timeout`, then SIGTERM, then SIGKILL. Returns exit codes."""
         self._stopping = True
+        self.final_cpu_seconds = self.cpu_seconds()
         procs = {c.spec.name: c.process for c in self.children if c.process is not None}
         for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, term_timeout), (signal.SIGKILL, 5.0)):
             alive = {n: p for n, p in procs.items() if p.poll() is None}

@@ -107,6 +107,7 @@ class RunStats:
     latencies: list[float] = field(default_factory=list)
     started: float = 0.0
     finished: float = 0.0
+    cpu_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -136,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     for name in ("timeout", "startup_timeout"):
         if not getattr(args, name) > 0:
             raise CliError(f"--{name.replace('_', '-')} must be > 0")
+    if not 0 <= args.drain <= 600:
+        raise CliError("--drain must be in [0, 600] s")
     if not 0 <= args.encoder_lookahead <= 3600:
         raise CliError("--encoder-lookahead must be in [0, 3600] s")
     with BagReader(args.in_bag) as reader:
@@ -191,7 +194,16 @@ def run(args: argparse.Namespace) -> int:
             f"wrote {out}",
             file=sys.stderr,
         )
+        cpu = {**stats.cpu_seconds, "run (player+recorder)": _own_cpu_seconds()}
+        print(f"run: CPU seconds: {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}", file=sys.stderr)
     return 0
+
+
+def _own_cpu_seconds() -> float:
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
 
 def _overrides(values: dict[str, Any]) -> list[str]:
@@ -323,6 +335,7 @@ class _Replay:
         finally:
             self.stats.finished = self.stats.finished or time.monotonic()
             self.supervisor.stop()
+            self.stats.cpu_seconds = self.supervisor.final_cpu_seconds
             signal.signal(signal.SIGTERM, previous_term)
             executor.shutdown()
             node.destroy_node()
