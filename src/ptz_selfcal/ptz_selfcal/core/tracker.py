@@ -443,10 +443,19 @@ class HomographyTracker:
             & (in_kf[:, 0] <= kw - 1 - margin)
             & (in_kf[:, 1] <= kh - 1 - margin)
         )
-        if visible.sum() < c.min_inliers:
-            return None
         warped = self._gain_matched_warp(cv2.warpPerspective(kf.image, H0, (w, h)), image)
         pts = corners[visible]
+        if len(pts) < c.max_features // 3:
+            # Small overlap: detect corners inside it, so the link does not hang on a handful.
+            ones = np.full(kf.image.shape, 255, np.uint8)
+            overlap = cv2.erode(
+                cv2.warpPerspective(ones, H0, (w, h)), np.ones((2 * margin + 1,) * 2, np.uint8)
+            )
+            found = detect_corners(image, c.max_features, c.grid, c.quality_level, c.min_distance,
+                                   c.min_corner_eigenvalue, mask=overlap)  # fmt: skip
+            pts = found if len(found) > len(pts) else pts
+        if len(pts) < c.min_inliers:
+            return None
         found, ok = track_klt(image, warped, pts, self._klt, initial=pts, levels=2)
         if ok.sum() < c.min_inliers:
             return None
@@ -510,9 +519,15 @@ class HomographyTracker:
             refined = None if H_desc is None else self._photometric_link(kf, image, corners, H_desc)
             if refined is not None:
                 fit, src, dst = refined
-                link = (kf, fit, self._make_link(kf, fit, src, dst))
+                links = [(kf, fit, self._make_link(kf, fit, src, dst))]
+                # Also link older overlapping keyframes (fewer hops to the reference, loop closure).
+                H_ref_guess = links[0][2].H @ kf.H_ref
+                for other, H_chain in self._older_candidates(image, H_ref_guess, kf.id):
+                    linked = self._link(other, image, corners, H_chain)
+                    if linked is not None:
+                        links.append(linked)
                 return self._commit_keyframe(
-                    image, stamp, corners, [link], TrackingState.RELOCALISED, len(src)
+                    image, stamp, corners, links, TrackingState.RELOCALISED, len(fit.inliers)
                 )
         if self._lost_frames >= c.new_map_after_lost:
             _LOG.info("relocalisation failed for %d frames: starting a new map", self._lost_frames)
