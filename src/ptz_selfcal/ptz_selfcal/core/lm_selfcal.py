@@ -153,6 +153,7 @@ def lm_selfcalibration(
     nominal_focal: float | None = None,
     max_nfev: int = 200,
     analyse: bool = True,
+    max_relative_sigma_f: float = 0.02,
 ) -> SelfCalibrationResult:
     """Self-calibration by LM on eq. 22 from H[j] mapping frame-0 pixels to frame-j pixels (H[0] = I).
 
@@ -162,7 +163,8 @@ def lm_selfcalibration(
     bound enforced (trust-region reflective), and ending on the bound is reported as a failure.
     The result carries 1-sigma uncertainties from the final Jacobian and a MotionReport (section 6);
     ok is False when f collapsed onto f_min (eq. 22's f -> 0 solution) or the motion is not well
-    posed. Raises SelfCalibrationError on invalid input.
+    posed, e.g. near-ambiguous (6.2) when the median relative sigma_f exceeds max_relative_sigma_f.
+    Raises SelfCalibrationError on invalid input.
     """
     model = model or IntrinsicsModel()
     H = np.asarray(H, dtype=float).reshape(-1, 3, 3)
@@ -217,7 +219,9 @@ def lm_selfcalibration(
         info={"status": int(sol.status), "solver_message": sol.message, "solver_ok": ok},
     )
     if analyse:
-        result.motion = analyse_motion(R, K, image_size, sigma_f=sigma_f)
+        result.motion = analyse_motion(
+            R, K, image_size, sigma_f=sigma_f, max_relative_sigma_f=max_relative_sigma_f
+        )
         if result.ok and not result.motion.well_posed:
             result.ok = False
             result.message = f"motion not well posed: {result.motion.status} ({result.motion.message})"
