@@ -63,10 +63,6 @@ class Panorama:
     width: int  # level-0 width and height, without padding
     height: int
 
-    @property
-    def channels(self) -> int:
-        return 1 if self.levels[0].ndim == 2 else int(self.levels[0].shape[2])
-
     def level_size(self, level: int) -> tuple[int, int]:
         h, w = self.levels[level].shape[:2]
         return w - 2 * _PAD, h - 2 * _PAD
