@@ -182,6 +182,10 @@ class SessionConfig:
     max_focal_ratio: float = 20.0  # homographies scaling more than this are tracker failures
     prior_sigma_f_fraction: float = 0.3  # 1-sigma reported for f from nominal parameters
     zoom_model_min_keyframes: int = 4  # converged keyframes before the zoom model is used
+    # CPU share of the re-optimisation (the node runs it beside the tracker on the same cores): after a
+    # solve of t seconds the next waits max(min_solve_period_s, t (1 - duty) / duty); 0 = no limit
+    min_solve_period_s: float = 0.0
+    max_solve_duty: float = 1.0
 
     def nominal_focal(self, width: int) -> float:
         if self.nominal_focal_px > 0.0:
@@ -380,6 +384,7 @@ class CalibratorSession:
         self.image_size: tuple[int, int] | None = None
         self.keyframe_zoom: dict[int, float] = {}
         self._sampled_keyframes: set[int] = set()
+        self._neighbour: dict[int, int] = {}
         self._seen_keyframes: set[int] = set()
         self.last_good: FrameOutput | None = None
         self.zoom_model = ZoomModel()
@@ -474,6 +479,10 @@ class CalibratorSession:
         """
         K_ref, R_ref, sigma_f = snap.calibrator.frame_intrinsics(H)
         local = snap.keyframes.get(keyframe_id)
+        hops, kid = 0, keyframe_id
+        while local is None and kid in self._neighbour and hops < 16:  # newest keyframes: not solved yet
+            kid, hops = self._neighbour[kid], hops + 1
+            local = snap.keyframes.get(kid)
         if local is None:
             return K_ref, R_ref, sigma_f
         H_k, K_k, R_k = local
@@ -617,6 +626,10 @@ class CalibratorSession:
             )
             return False
         self._pending_matches.append(KeyframeMatchSet(int(keyframe_id), int(other_keyframe_id), a, b))
+        # a keyframe not yet in the solve borrows the calibration of the keyframe it is linked to
+        self._neighbour.setdefault(int(keyframe_id), int(other_keyframe_id))
+        if len(self._neighbour) > 4096:
+            self._neighbour.pop(next(iter(self._neighbour)))
         self.counters["keyframe_matches"] += 1
         return True
 
@@ -664,7 +677,10 @@ class CalibratorSession:
                 if time.perf_counter() - start > max_seconds:
                     break
             remaining = max_seconds - (time.perf_counter() - start)
-            if calibrator.calibrated and (added or self._needs_refinement) and remaining > 0.0 and not solved:
+            if added:
+                self._needs_refinement = True
+            due = time.monotonic() >= self._next_solve
+            if calibrator.calibrated and self._needs_refinement and remaining > 0.0 and not solved and due:
                 before = calibrator.last_solve
                 t0 = time.perf_counter()
                 try:
@@ -678,6 +694,10 @@ class CalibratorSession:
                 else:
                     self.counters["solve_failures"] += 1
                 self._needs_refinement = False
+                spent = time.perf_counter() - t0
+                duty = min(max(self.config.max_solve_duty, 1e-3), 1.0)
+                wait = max(self.config.min_solve_period_s, spent * (1.0 - duty) / duty)
+                self._next_solve = time.monotonic() + wait
             if added or solved or self._snapshot is None:
                 self._publish_snapshot()
                 self._dirty = True
@@ -685,6 +705,7 @@ class CalibratorSession:
 
     _reset_requested = False
     _needs_refinement = False
+    _next_solve = 0.0
 
     def _new_calibrator(self) -> IncrementalCalibrator:
         assert self.image_size is not None

@@ -80,6 +80,18 @@ PARAMS = [
     ),
     Param("reoptimise_period", 0.05, "seconds the worker waits for new keyframes", in_range(0.001, 10.0)),
     Param(
+        "reoptimise_min_interval",
+        0.5,
+        "seconds at least between two re-optimisations (keyframes arriving meanwhile are batched)",
+        in_range(0.0, 3600.0),
+    ),
+    Param(
+        "reoptimise_max_duty",
+        0.25,
+        "largest fraction of one core the re-optimisation may use (it shares the cores with the tracker)",
+        in_range(0.01, 1.0),
+    ),
+    Param(
         "min_rotation_deg",
         2.0,
         "keyframe rotation off the reference's optical axis needed before the first solve (section 6)",
@@ -146,6 +158,8 @@ class CalibratorNode(Node):
             ba_principal_point=p["ba_principal_point"],
             pp_prior_sigma_px=p["pp_prior_sigma_px"],
             ba_max_points_per_pair=p["ba_max_points_per_pair"],
+            min_solve_period_s=p["reoptimise_min_interval"],
+            max_solve_duty=p["reoptimise_max_duty"],
         )
         self._session = CalibratorSession(config, state_dir=p["state_dir"] or None)
         for line in self._session.restore():
