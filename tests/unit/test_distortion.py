@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from ptz_selfcal.core.distortion import (
     division_corner_shift,
     division_distort,
@@ -267,3 +268,23 @@ def test_distortion_vs_focal_reduces_degree_on_a_narrow_range():
     curve = DistortionVsFocal(W, H).fit(f, [lam_true(x) for x in f])
     assert curve.coefficients is not None and curve.coefficients[2] == 0.0
     assert division_error(float(curve.predict(F_WIDE * 1.02)), lam_true(F_WIDE * 1.02), F_WIDE * 1.02) < 0.2
+
+
+def test_analytic_jacobian_matches_finite_differences():
+    from ptz_selfcal.core import distortion_estimation as de
+
+    rng = np.random.default_rng(6)
+    a, b = rng.uniform(-0.5, 0.5, (40, 2)), rng.uniform(-0.4, 0.4, (40, 2))
+    H0 = np.eye(3) + 0.05 * rng.normal(size=(3, 3))
+    p0 = np.concatenate([[-0.2, -0.3], 0.01 * rng.normal(size=8)])
+
+    def residuals(p):
+        return de._pair_residuals(a, b, p[0], p[1], de._homography_from_update(p[2:], H0), 1100.0, 1500.0)
+
+    r, J_lam, J_D = de._pair_jacobian(
+        a, b, p0[0], p0[1], H0, de._homography_from_update(p0[2:], H0), 1100.0, 1500.0
+    )
+    J = np.hstack([J_lam, J_D])
+    numeric = np.column_stack([(residuals(p0 + d) - residuals(p0 - d)) / 2e-7 for d in 1e-7 * np.eye(10)])
+    np.testing.assert_allclose(r, residuals(p0))
+    assert np.abs(J - numeric).max() < 1e-6 * np.abs(numeric).max()

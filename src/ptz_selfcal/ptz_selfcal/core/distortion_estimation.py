@@ -23,11 +23,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
 from ptz_selfcal.core.distortion import half_diagonal
 from ptz_selfcal.core.homography import homography_dlt
@@ -220,6 +219,77 @@ def _pair_residuals(
     return np.concatenate([res_j.ravel(), res_i.ravel()])
 
 
+def _projection_derivative(p: Array) -> tuple[Array, Array]:
+    """v = p[:2] / p[2] and dv/dp, (N, 2) and (N, 2, 3)."""
+    v = p[:, :2] / p[:, 2:3]
+    dv = np.zeros((len(p), 2, 3))
+    inv = 1.0 / p[:, 2]
+    dv[:, 0, 0] = inv
+    dv[:, 1, 1] = inv
+    dv[:, :, 2] = -v * inv[:, None]
+    return v, dv
+
+
+def _distort_derivative(v: Array, lam: float) -> tuple[Array, Array, Array]:
+    """w = v g(lam |v|^2) (closed-form division distortion), dw/dv (N, 2, 2) and dw/dlam (N, 2)."""
+    s = np.einsum("ij,ij->i", v, v)
+    disc = np.maximum(1.0 - 4.0 * lam * s, 1e-6)
+    sq = np.sqrt(disc)
+    g = 2.0 / (1.0 + sq)
+    dg = 4.0 / ((1.0 + sq) ** 2 * sq)  # dg/dt, t = lam |v|^2
+    w = v * g[:, None]
+    dw_dv = g[:, None, None] * np.eye(2) + (2.0 * lam * dg)[:, None, None] * v[:, :, None] * v[:, None, :]
+    return w, dw_dv, v * (dg * s)[:, None]
+
+
+def _one_way(
+    a: Array, b: Array, lam_src: float, lam_dst: float, M: Array, f_dst: float
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Residual f_dst (d(M u(a)) - b) and its derivatives w.r.t. lam_src, lam_dst and M's input p.
+
+    Returns r (N, 2), dr/dlam_src (N, 2), dr/dlam_dst (N, 2), dr/dp (N, 2, 3) with p = M [u, 1],
+    the homogeneous source point [u, 1] (N, 3) and p (N, 3).
+    """
+    s_a = np.einsum("ij,ij->i", a, a)
+    den = 1.0 + lam_src * s_a
+    u = a / den[:, None]
+    du_dlam = -a * (s_a / den**2)[:, None]
+    x = np.column_stack([u, np.ones(len(u))])
+    p = x @ M.T
+    v, dv_dp = _projection_derivative(p)
+    w, dw_dv, dw_dlam = _distort_derivative(v, lam_dst)
+    dr_dp = f_dst * np.einsum("nij,njk->nik", dw_dv, dv_dp)
+    dr_dlam_src = np.einsum("nik,kl,nl->ni", dr_dp, M[:, :2], du_dlam)
+    return f_dst * (w - b), dr_dlam_src, f_dst * dw_dlam, dr_dp, x, p
+
+
+_CHART = [(r, c) for r in range(3) for c in range(3)][:8]  # the 8 free entries of D in H = (I + D) H0
+
+
+def _pair_jacobian(
+    a: Array, b: Array, lam_i: float, lam_j: float, H0: Array, H: Array, f_i: float, f_j: float
+) -> tuple[Array, Array, Array]:
+    """Residuals (4N,), d/d(lam_i, lam_j) (4N, 2) and d/dD (4N, 8) of the symmetric transfer error."""
+    Hinv = np.linalg.inv(H)
+    r_j, dj_dli, dj_dlj, dj_dp, x_i, _ = _one_way(a, b, lam_i, lam_j, H, f_j)
+    r_i, di_dlj, di_dli, di_dp, _, p_back = _one_way(b, a, lam_j, lam_i, Hinv, f_i)
+    # forward: dp/dD[r, c] = e_r (H0 x)_c ; backward: d(H^-1 x')/dD[r, c] = -H^-1 e_r (H0 H^-1 x')_c
+    q = x_i @ H0.T
+    m = p_back @ H0.T
+    back = np.einsum("nik,kr->nir", di_dp, -Hinv)
+    J_D = np.empty((2, len(a), 2, 8))
+    for col, (r, c) in enumerate(_CHART):
+        J_D[0, :, :, col] = dj_dp[:, :, r] * q[:, c : c + 1]
+        J_D[1, :, :, col] = back[:, :, r] * m[:, c : c + 1]
+    J_lam = np.concatenate(
+        [
+            np.stack([dj_dli, dj_dlj], axis=-1).reshape(-1, 2),
+            np.stack([di_dli, di_dlj], axis=-1).reshape(-1, 2),
+        ]
+    )
+    return np.concatenate([r_j.ravel(), r_i.ravel()]), J_lam, J_D.reshape(-1, 8)
+
+
 def _to_pixels(H_norm: Array, centre_i: Array, centre_j: Array, f_i: float, f_j: float) -> Array:
     """Homography on normalised coordinates -> on pixels."""
     Ni = np.array([[1.0 / f_i, 0.0, -centre_i[0] / f_i], [0.0, 1.0 / f_i, -centre_i[1] / f_i], [0, 0, 1.0]])
@@ -236,7 +306,7 @@ def estimate_keyframe_distortion(
     curve: DistortionVsFocal | None = None,
     loss: str = "soft_l1",
     f_scale_px: float = 2.0,
-    max_nfev: int = 200,
+    max_iterations: int = 100,
 ) -> KeyframeDistortion:
     """One lam per keyframe (or the curve's coefficients if `curve` is given) and one H per match.
 
@@ -278,48 +348,59 @@ def estimate_keyframe_distortion(
 
         p_init = lam_init
     H0 = [_initial_homography(a, b, lam_init[m.i], lam_init[m.j]) for m, (a, b) in zip(matches, norm)]
-
-    def residuals(x: Array) -> Array:
-        lams = lams_of(x[:n_dist])
-        out = []
-        for k, (m, (a, b)) in enumerate(zip(matches, norm)):
-            H = _homography_from_update(x[n_dist + 8 * k : n_dist + 8 * k + 8], H0[k])
-            out.append(_pair_residuals(a, b, lams[m.i], lams[m.j], H, focals[m.i], focals[m.j]))
-        return np.concatenate(out)
-
     sizes = [4 * len(a) for a, _ in norm]
-    sparsity = lil_matrix((sum(sizes), n_dist + 8 * len(matches)), dtype=int)
-    row = 0
-    for k, (m, n_res) in enumerate(zip(matches, sizes)):
-        cols = list(range(n_dist)) if curve is not None else [m.i, m.j]
-        for c in cols:
-            sparsity[row : row + n_res, c] = 1
-        sparsity[row : row + n_res, n_dist + 8 * k : n_dist + 8 * k + 8] = 1
-        row += n_res
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    n_par = n_dist + 8 * len(matches)
+
+    def dlam_dp(p: Array) -> Array:
+        """(n_kf, n_dist) derivative of the keyframe coefficients w.r.t. the distortion parameters."""
+        if curve is None:
+            return np.eye(n_kf)
+        shift = V @ p
+        rho2 = (curve.half_diagonal / focals) ** 2
+        return (-1.0 / ((1.0 + shift) ** 2 * rho2))[:, None] * V
+
+    def evaluate(x: Array, with_jacobian: bool) -> tuple[Array, list[tuple[Array, Array]]]:
+        """Residuals and, per match, (column indices, Jacobian block) of the block-sparse Jacobian."""
+        lams = lams_of(x[:n_dist])
+        G = dlam_dp(x[:n_dist]) if with_jacobian else None
+        res = np.empty(offsets[-1])
+        blocks = []
+        for k, (m, (a, b)) in enumerate(zip(matches, norm)):
+            rows = slice(offsets[k], offsets[k + 1])
+            h_cols = np.arange(n_dist + 8 * k, n_dist + 8 * k + 8)
+            H = _homography_from_update(x[h_cols], H0[k])
+            if G is None:
+                res[rows] = _pair_residuals(a, b, lams[m.i], lams[m.j], H, focals[m.i], focals[m.j])
+                continue
+            res[rows], J_lam, J_D = _pair_jacobian(
+                a, b, lams[m.i], lams[m.j], H0[k], H, focals[m.i], focals[m.j]
+            )
+            if curve is None:
+                d_cols, J_dist = np.array([m.i, m.j]), J_lam
+            else:  # chain rule through lam_k(curve coefficients)
+                d_cols, J_dist = np.arange(n_dist), J_lam[:, :1] * G[m.i] + J_lam[:, 1:] * G[m.j]
+            blocks.append((np.concatenate([d_cols, h_cols]), np.hstack([J_dist, J_D])))
+        return res, blocks
+
     x0 = np.concatenate([p_init, np.zeros(8 * len(matches))])
-    result = least_squares(
-        residuals,
-        x0,
-        jac_sparsity=sparsity,
-        method="trf",
-        loss=loss,
-        f_scale=f_scale_px,
-        x_scale="jac",
-        max_nfev=max_nfev,
-    )
-    x = result.x
+    solution = _robust_levenberg_marquardt(evaluate, x0, offsets, n_par, loss, f_scale_px, max_iterations)
+    x = solution.x
     lams = lams_of(x[:n_dist])
-    res = residuals(x)
+    res, blocks = evaluate(x, True)
     # per-pair rms of point transfer distances, and the covariance of lam (Gauss-Newton, robust-free)
-    pair_rms = []
-    row = 0
-    for n_res in sizes:
-        r = res[row : row + n_res]
-        pair_rms.append(np.sqrt(np.mean(r**2) * 2.0))
-        row += n_res
-    sigma = _lambda_sigmas(result.jac, res, n_dist, curve is not None, n_kf, matches)
-    if curve is not None:
-        sigma = _curve_lambda_sigmas(result.jac, res, n_dist, focals, curve, x[:n_dist])
+    pair_rms = np.array(
+        [np.sqrt(np.mean(res[offsets[k] : offsets[k + 1]] ** 2) * 2.0) for k in range(len(matches))]
+    )
+    JtJ, _ = _normal_equations(blocks, offsets, res, np.ones_like(res), n_par)
+    cov = _covariance(JtJ, res)
+    if curve is None:
+        seen = np.zeros(n_kf, dtype=bool)
+        for m in matches:
+            seen[[m.i, m.j]] = True
+        sigma = np.where(seen, np.sqrt(np.maximum(np.diag(cov)[:n_kf], 0.0)), np.inf)
+    else:
+        sigma = _curve_lambda_sigmas(cov[:n_dist, :n_dist], focals, curve, x[:n_dist])
     homographies = [
         _to_pixels(
             _homography_from_update(x[n_dist + 8 * k : n_dist + 8 * k + 8], H0[k]),
@@ -341,43 +422,94 @@ def estimate_keyframe_distortion(
         sigma_lam=sigma,
         homographies=homographies,
         rms=float(np.sqrt(np.mean(res**2) * 2.0)),
-        pair_rms=np.asarray(pair_rms),
+        pair_rms=pair_rms,
         rms_undistorted_model=float(np.sqrt(np.mean(zero**2) * 2.0)),
         curve_coefficients=None if curve is None else x[:n_dist].copy(),
-        converged=bool(result.success),
-        message=str(result.message),
+        converged=solution.converged,
+        message=solution.message,
     )
 
 
-def _covariance(J: Array, res: Array) -> Array:
-    """Gauss-Newton covariance sigma^2 (J^T J)^+ (J may be sparse; J^T J is formed sparse)."""
-    JtJ = J.T @ J
-    JtJ = JtJ.toarray() if hasattr(JtJ, "toarray") else np.asarray(JtJ)
+class _Solution(NamedTuple):
+    x: Array
+    converged: bool
+    message: str
+
+
+def _normal_equations(
+    blocks: list[tuple[Array, Array]], offsets: Array, res: Array, weights: Array, n_par: int
+) -> tuple[Array, Array]:
+    """J^T W J and J^T W r accumulated block by block (J is never formed densely)."""
+    A = np.zeros((n_par, n_par))
+    g = np.zeros(n_par)
+    for k, (cols, Jb) in enumerate(blocks):
+        rows = slice(offsets[k], offsets[k + 1])
+        WJ = Jb * weights[rows, None]
+        A[np.ix_(cols, cols)] += Jb.T @ WJ
+        g[cols] += WJ.T @ res[rows]
+    return A, g
+
+
+def _robust_cost(res: Array, loss: str, scale: float) -> tuple[float, Array]:
+    """Total robust cost and the IRLS weights rho'(r^2) (scipy's soft_l1 / huber / linear losses)."""
+    z = (res / scale) ** 2
+    if loss == "soft_l1":
+        return float(scale**2 * np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0))), 1.0 / np.sqrt(1.0 + z)
+    if loss == "huber":
+        big = z > 1.0
+        rho = np.where(big, 2.0 * np.sqrt(np.maximum(z, 1.0)) - 1.0, z)
+        return float(scale**2 * np.sum(rho)), np.where(big, 1.0 / np.sqrt(np.maximum(z, 1.0)), 1.0)
+    if loss == "linear":
+        return float(np.sum(res**2)), np.ones_like(res)
+    raise ValueError(f"unknown loss {loss!r}")
+
+
+def _robust_levenberg_marquardt(
+    evaluate, x0: Array, offsets: Array, n_par: int, loss: str, scale: float, max_iterations: int
+) -> _Solution:
+    """Levenberg-Marquardt with iteratively reweighted robust loss on block-sparse normal equations."""
+    x = x0.copy()
+    res, blocks = evaluate(x, True)
+    cost, weights = _robust_cost(res, loss, scale)
+    mu = 1e-4
+    for _ in range(max_iterations):
+        A, g = _normal_equations(blocks, offsets, res, weights, n_par)
+        diag = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
+        improved = False
+        for _ in range(20):
+            try:
+                step = np.linalg.solve(A + mu * np.diag(diag), -g)
+            except np.linalg.LinAlgError:
+                mu *= 10.0
+                continue
+            new_res = evaluate(x + step, False)[0]
+            new_cost = _robust_cost(new_res, loss, scale)[0]
+            if np.isfinite(new_cost) and new_cost <= cost:
+                improved = True
+                break
+            mu *= 10.0
+        if not improved:
+            return _Solution(x, True, "no further decrease of the cost")
+        x = x + step
+        decrease = cost - new_cost
+        cost = new_cost
+        mu = max(mu / 10.0, 1e-12)
+        if decrease <= 1e-12 * max(cost, 1e-300) or np.max(np.abs(step)) < 1e-14:
+            return _Solution(x, True, "converged")
+        res, blocks = evaluate(x, True)
+        weights = _robust_cost(res, loss, scale)[1]
+    return _Solution(x, False, "iteration limit")
+
+
+def _covariance(JtJ: Array, res: Array) -> Array:
+    """Gauss-Newton covariance sigma^2 (J^T J)^+."""
     dof = max(len(res) - JtJ.shape[0], 1)
-    sigma2 = float(res @ res) / dof
-    return np.linalg.pinv(JtJ) * sigma2
+    return np.linalg.pinv(JtJ) * (float(res @ res) / dof)
 
 
-def _lambda_sigmas(
-    J: Array, res: Array, n_dist: int, is_curve: bool, n_kf: int, matches: Sequence[KeyframeMatch]
-) -> Array:
-    if is_curve:
-        return np.full(n_kf, np.nan)
-    cov = _covariance(J, res)
-    sigma = np.sqrt(np.maximum(np.diag(cov)[:n_dist], 0.0))
-    seen = np.zeros(n_kf, dtype=bool)
-    for m in matches:
-        seen[[m.i, m.j]] = True
-    return np.where(seen, sigma, np.inf)
-
-
-def _curve_lambda_sigmas(
-    J: Array, res: Array, n_dist: int, focals: Array, curve: DistortionVsFocal, coeffs: Array
-) -> Array:
-    cov = _covariance(J, res)[:n_dist, :n_dist]
+def _curve_lambda_sigmas(cov: Array, focals: Array, curve: DistortionVsFocal, coeffs: Array) -> Array:
     assert curve.f_ref is not None
-    u = curve.f_ref / focals
-    V = np.vander(u, n_dist, increasing=True)
+    V = np.vander(curve.f_ref / focals, len(coeffs), increasing=True)
     sigma_s = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", V, cov, V), 0.0))
     s = V @ coeffs
     rho2 = (curve.half_diagonal / focals) ** 2
