@@ -288,3 +288,27 @@ def test_analytic_jacobian_matches_finite_differences():
     numeric = np.column_stack([(residuals(p0 + d) - residuals(p0 - d)) / 2e-7 for d in 1e-7 * np.eye(10)])
     np.testing.assert_allclose(r, residuals(p0))
     assert np.abs(J - numeric).max() < 1e-6 * np.abs(numeric).max()
+
+
+def test_homographies_on_corrected_coordinates():
+    from ptz_selfcal.core.distortion_estimation import (
+        undistorted_homography,
+        undistorted_homography_from_points,
+    )
+    from ptz_selfcal.core.geometry import transfer_error
+    from ptz_selfcal.core.homography import estimate_homography
+
+    f_i, f_j = F_WIDE, 1.1 * F_WIDE
+    d_i, d_j = synthetic_pair(f_i, f_j, (0.0, 0.0), (0.15, 0.05), n=400)
+    K_i, K_j = intrinsic_matrix(f_i, *CENTRE), intrinsic_matrix(f_j, *CENTRE)
+    H_true = K_j @ ptz_rotation(0.15, 0.05) @ np.linalg.inv(K_i)  # eq. 8 between undistorted images
+    u_i = division_undistort(d_i, lam_true(f_i), CENTRE, f_i)
+    exact = undistorted_homography_from_points(
+        d_i, d_j, lam_true(f_i), lam_true(f_j), CENTRE, CENTRE, f_i, f_j
+    )
+    assert transfer_error(exact, H_true, u_i).max() < 1e-6
+    H_raw = estimate_homography(d_i, d_j)  # what a tracker fits to distorted points
+    raw_error = np.median(transfer_error(H_raw, H_true, u_i))
+    corrected = undistorted_homography(H_raw, lam_true(f_i), lam_true(f_j), CENTRE, CENTRE, f_i, f_j, W, H)
+    corrected_error = np.median(transfer_error(corrected, H_true, u_i))
+    assert raw_error > 8.0 and corrected_error < 1.0
