@@ -1,6 +1,6 @@
 """Benchmark of the homography tracker (issue 4; paper sections 2.2 and 4.2).
 
-1. PTZ sequences rendered from the shared equirectangular panoramas with exact ground truth
+1. PTZ sequences rendered (core.render.render_view) from the shared panoramas with exact ground truth
    (1280x720, zoom 1x -> 3x, pan +-40 deg, small tilt, no distortion, Gaussian noise + JPEG): every
    estimated homography is compared with the true K_j R_j R_i^T K_i^-1 (eq. 8) by the transfer error
    over a 16x9 grid of the current image (points mapped back to the source by the true H), in
@@ -38,6 +38,7 @@ from ptz_selfcal.core.geometry import (  # noqa: E402
     relative_rotation,
     transfer_error,
 )
+from ptz_selfcal.core.render import build_panorama, render_view  # noqa: E402
 from ptz_selfcal.core.tracker import HomographyTracker, TrackerConfig, TrackingState  # noqa: E402
 
 DATA = Path("/work/shared/data")
@@ -48,37 +49,6 @@ RESULTS = ROOT / "benchmarks" / "results" / "tracker.txt"
 
 
 # ----------------------------------------------------------------------------- rendering
-def _pyramid(pano: np.ndarray, levels: int = 6) -> list[np.ndarray]:
-    out = [pano]
-    while len(out) < levels and out[-1].shape[1] >= 64:
-        out.append(cv2.pyrDown(out[-1]))
-    return out
-
-
-def render(pyramid: list[np.ndarray], K: np.ndarray, R: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Local equirectangular sampler (to be replaced by core.render.render_view once it is committed):
-    pixel -> world ray d = R^T K^-1 x, lon = atan2(X, Z), lat = asin(-Y/|d|), bilinear remap from the
-    pyramid level whose pixel pitch matches the view's (no aliasing)."""
-    w, h = size
-    width = pyramid[0].shape[1]
-    level = int(np.clip(np.round(np.log2(max(width / (2 * np.pi * K[1, 1]), 1e-9))), 0, len(pyramid) - 1))
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    M = R.T @ np.linalg.inv(K)
-    X = M[0, 0] * u + M[0, 1] * v + M[0, 2]
-    Y = M[1, 0] * u + M[1, 1] * v + M[1, 2]
-    Z = M[2, 0] * u + M[2, 1] * v + M[2, 2]
-    lon = np.arctan2(X, Z)
-    lat = np.arctan2(-Y, np.hypot(X, Z))
-    img = pyramid[level]
-    wl, hl = img.shape[1], img.shape[0]
-    # Level-0 coordinates x0 = (lon/2pi + 1/2) W - 1/2; pyrDown level L: x_L = x_0 / 2^L.
-    x0 = (lon / (2 * np.pi) + 0.5) * width - 0.5
-    y0 = (0.5 - lat / np.pi) * pyramid[0].shape[0] - 0.5
-    map_x = np.mod(x0 / 2**level, wl).astype(np.float32)
-    map_y = np.clip(y0 / 2**level, 0, hl - 1).astype(np.float32)
-    return cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-
-
 @dataclass
 class Sequence:
     name: str
@@ -89,8 +59,7 @@ class Sequence:
 
 def make_sequence(path: Path, frames: int, seed: int) -> Sequence:
     """Zoom 1x -> 3x (geometric), pan 40 sin(2 pi t), tilt 4 sin(4 pi t) deg; noise sigma 2 + JPEG 85."""
-    pano = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    pyramid = _pyramid(pano)
+    panorama = build_panorama(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
     rng = np.random.default_rng(seed)
     w, h = SIZE
     f_wide = 0.5 * w / np.tan(np.radians(HFOV_WIDE / 2))
@@ -99,7 +68,7 @@ def make_sequence(path: Path, frames: int, seed: int) -> Sequence:
     for ti in t:
         K = intrinsic_matrix(f_wide * 3.0**ti, (w - 1) / 2 + 12.0, (h - 1) / 2 - 8.0)
         R = ptz_rotation(np.radians(40.0) * np.sin(2 * np.pi * ti), np.radians(4.0) * np.sin(4 * np.pi * ti))
-        img = render(pyramid, K, R, SIZE).astype(np.float32)
+        img = render_view(panorama, K, R, SIZE).astype(np.float32)
         img = np.clip(img + rng.normal(0.0, 2.0, img.shape), 0, 255).astype(np.uint8)
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
         assert ok

@@ -81,7 +81,7 @@ class TrackerConfig:
     link_with_descriptors: bool = False  # always start links from ORB matches (else only as fallback)
     max_keyframes: int = 64  # keyframe store cap (oldest pruned; the reference is kept)
     descriptor: str = "orb"  # re-matching/relocalisation descriptor: "orb" or "sift"
-    descriptor_features: int = 800
+    descriptor_features: int = 500
     descriptor_ratio: float = 0.8
     relocalise_candidates: int = 6  # keyframes tried per lost frame
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
@@ -332,7 +332,9 @@ class HomographyTracker:
         links = [(parent, fit, self._make_link(parent, fit, tracks.in_keyframe, tracks.current))]
         H_ref_guess = homography_work_to_full(fit.H, self._scale) @ parent.H_ref
         for kf, H_chain in self._older_candidates(image, H_ref_guess, parent.id):
-            linked = self._link(kf, image, corners, H_chain)
+            # Descriptor re-matching only while no link as close to the reference exists (bounded cost).
+            shortest = min(link_kf.depth for link_kf, _, _ in links)
+            linked = self._link(kf, image, corners, H_chain, rematch=kf.depth < shortest)
             if linked is not None:
                 links.append(linked)
         return self._commit_keyframe(image, stamp, corners, links, TrackingState.NEW_KEYFRAME, match_count)
@@ -356,10 +358,10 @@ class HomographyTracker:
         return [(kf, H_work) for *_, kf, H_work in scored[: c.link_candidates]]
 
     def _link(
-        self, kf: Keyframe, image: np.ndarray, corners: Points, H_chain: Array
+        self, kf: Keyframe, image: np.ndarray, corners: Points, H_chain: Array, rematch: bool = True
     ) -> tuple[Keyframe, RobustFit, KeyframeLink] | None:
         """Re-measure keyframe -> frame independently of the chain: photometrically from the chain's
-        prediction, else from ORB descriptor matches; reject a link that contradicts the chain."""
+        prediction, else (rematch) from descriptor matches; reject a link that contradicts the chain."""
         c = self.config
         starts = [] if c.link_with_descriptors else [H_chain]
         H_desc = self._descriptor_homography(kf, image) if c.link_with_descriptors else None
@@ -376,7 +378,7 @@ class HomographyTracker:
                     _LOG.debug("link %d -> frame %d contradicts the chain: dropped", kf.id, self._frame_index)
                     continue
                 return kf, fit, self._make_link(kf, fit, src, dst)
-            if attempt == 0 and not c.link_with_descriptors:
+            if attempt == 0 and rematch and not c.link_with_descriptors:
                 H_desc = self._descriptor_homography(kf, image)  # photometric start failed: re-match
                 starts = [H_desc] if H_desc is not None else []
         return None
@@ -523,7 +525,7 @@ class HomographyTracker:
                 # Also link older overlapping keyframes (fewer hops to the reference, loop closure).
                 H_ref_guess = links[0][2].H @ kf.H_ref
                 for other, H_chain in self._older_candidates(image, H_ref_guess, kf.id):
-                    linked = self._link(other, image, corners, H_chain)
+                    linked = self._link(other, image, corners, H_chain, rematch=other.depth < kf.depth)
                     if linked is not None:
                         links.append(linked)
                 return self._commit_keyframe(
