@@ -81,13 +81,13 @@ PARAMS = [
     Param("reoptimise_period", 0.05, "seconds the worker waits for new keyframes", in_range(0.001, 10.0)),
     Param(
         "reoptimise_min_interval",
-        0.5,
+        0.1,
         "seconds at least between two re-optimisations (keyframes arriving meanwhile are batched)",
         in_range(0.0, 3600.0),
     ),
     Param(
         "reoptimise_max_duty",
-        0.25,
+        0.5,
         "largest fraction of one core the re-optimisation may use (it shares the cores with the tracker)",
         in_range(0.01, 1.0),
     ),
