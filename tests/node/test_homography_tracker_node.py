@@ -1,0 +1,191 @@
+"""homography_tracker in a real process: one HomographyStamped per IngestedFrame (also when lost),
+homographies in full-resolution pixels, keyframe links, and the latest-wins overload policy."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+from conftest import PANORAMAS, node_command
+
+from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+
+ROS_DOMAIN_ID = 113
+MODULE = "ptz_selfcal.nodes.homography_tracker"
+W, H = 640, 360  # working size; full size is twice that (scale 0.5)
+K_FULL = intrinsic_matrix(900.0, 639.5, 359.5)
+
+
+def texture() -> np.ndarray:
+    path = PANORAMAS / "building.jpg"
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    h, w = img.shape
+    return np.ascontiguousarray(img[h // 2 - 900 : h // 2 + 900, w // 3 : w // 3 + 2600])
+
+
+def frame(tex: np.ndarray, pan: float, tilt: float) -> tuple[np.ndarray, np.ndarray]:
+    """A full-resolution view rotated by (pan, tilt) from the reference, downscaled by 2, and the true
+    full-resolution homography reference -> this frame (H = K R K^-1)."""
+    H_true = K_FULL @ ptz_rotation(pan, tilt) @ np.linalg.inv(K_FULL)
+    offset = np.array([[1.0, 0.0, 660.0], [0.0, 1.0, 540.0], [0.0, 0.0, 1.0]])  # into the texture
+    to_texture = offset @ np.linalg.inv(H_true)
+    full = cv2.warpPerspective(tex, to_texture, (2 * W, 2 * H), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    return cv2.resize(full, (W, H), interpolation=cv2.INTER_AREA), H_true
+
+
+class Harness:
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+
+        from ptz_selfcal import topics
+        from ptz_selfcal.nodes.runtime import reliable_qos
+        from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("test_tracker", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.homographies: list = []
+        self.keyframes: list = []
+        self.diagnostics: list[dict[str, str]] = []
+        self.pub = self.node.create_publisher(IngestedFrame, topics.FRAME_IN, reliable_qos())
+        self.node.create_subscription(
+            HomographyStamped, topics.HOMOGRAPHY, self.homographies.append, reliable_qos()
+        )
+        self.node.create_subscription(
+            KeyframeMatches, topics.KEYFRAMES, self.keyframes.append, reliable_qos()
+        )
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, reliable_qos(10))
+        self.IngestedFrame = IngestedFrame
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            if status.name.endswith("homography_tracker"):
+                self.diagnostics.append({kv.key: kv.value for kv in status.values})
+
+    def spin(self, seconds: float, until=None) -> bool:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.02)
+            if until is not None and until():
+                return True
+        return until is None
+
+    def send(self, seq: int, image: np.ndarray, pan: float) -> None:
+        from ptz_selfcal.nodes.conversions import fill_mono8
+
+        msg = self.IngestedFrame()
+        msg.header.stamp.sec = 1000 + seq // 30
+        msg.header.stamp.nanosec = (seq % 30) * 33_333_333
+        msg.header.frame_id = "ptz_camera"
+        msg.image.header = msg.header
+        fill_mono8(msg.image, image)
+        msg.full_width, msg.full_height, msg.scale = 2 * W, 2 * H, 0.5
+        msg.encoders.pan, msg.encoders.tilt, msg.encoders.zoom, msg.encoders.valid = pan, 0.0, 7.0, True
+        msg.seq = seq
+        self.pub.publish(msg)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+@pytest.fixture
+def harness() -> Harness:
+    h = Harness()
+    yield h
+    h.close()
+
+
+def connect(h: Harness, proc) -> None:
+    assert h.spin(
+        20.0,
+        lambda: h.pub.get_subscription_count() > 0 and h.node.count_publishers("/ptz/selfcal/homography") > 0,
+    ), proc.output()
+    h.spin(0.3)
+
+
+def test_one_homography_per_frame_accurate_and_lost_frames_flagged(ros_env, start_process, harness: Harness):
+    proc = start_process(node_command(MODULE, "-p", "diagnostics_period:=0.2"), ros_env, "tracker")
+    tex = texture()
+    connect(harness, proc)
+    pans = np.radians(np.linspace(0.0, 8.0, 25))
+    truths = []
+    for seq, pan in enumerate(pans):
+        image, H_true = frame(tex, float(pan), float(0.2 * pan))
+        truths.append(H_true)
+        harness.send(seq, image, float(pan))
+        harness.spin(0.01)
+    black = np.zeros((H, W), np.uint8)
+    for seq in range(len(pans), len(pans) + 3):
+        harness.send(seq, black, 0.0)
+    n = len(pans) + 3
+    assert harness.spin(60.0, lambda: len(harness.homographies) >= n), proc.output()
+    assert [m.seq for m in harness.homographies] == list(range(n))
+    corners = np.array([[0.0, 0.0], [1279.0, 0.0], [0.0, 719.0], [1279.0, 719.0], [640.0, 360.0]])
+    for msg, H_true in zip(harness.homographies[: len(pans)], truths):
+        assert (msg.image_width, msg.image_height) == (2 * W, 2 * H)
+        assert msg.encoders.valid and msg.encoders.zoom == 7.0
+        assert msg.state in (msg.TRACKING, msg.NEW_KEYFRAME, msg.RELOCALISED), msg.state
+        assert msg.inlier_count >= 20
+        h = np.asarray(msg.h).reshape(3, 3)
+        error = np.linalg.norm(apply_homography(h, corners) - apply_homography(H_true, corners), axis=1)
+        assert error.max() < 3.0, (msg.seq, error)  # full-resolution pixels
+        assert msg.reference_stamp == harness.homographies[0].header.stamp
+    for msg in harness.homographies[len(pans) :]:
+        assert msg.state in (msg.TRACKING_LOST, msg.TEXTURELESS)
+        assert np.array_equal(np.asarray(msg.h), np.eye(3).ravel()) and msg.inlier_count == 0
+    assert harness.keyframes, "an 8 degree pan must make new keyframes with links"
+    for kf in harness.keyframes:
+        assert len(kf.points) == len(kf.other_points) > 0 and len(kf.points) % 2 == 0
+        assert np.all(np.isfinite(kf.h))
+    assert harness.spin(
+        5.0, lambda: harness.diagnostics and harness.diagnostics[-1].get("frames_out") == str(n)
+    )
+    assert proc.alive()
+    assert proc.stop() == 0
+
+
+def test_latest_policy_sheds_frames_and_counts_them(ros_env, start_process, harness: Harness):
+    proc = start_process(
+        node_command(
+            MODULE, "-p", "queue_policy:=latest", "-p", "queue_depth:=1", "-p", "diagnostics_period:=0.2"
+        ),
+        ros_env,
+        "tracker_latest",
+    )
+    tex = texture()
+    connect(harness, proc)
+    images = [frame(tex, float(np.radians(0.2 * k)), 0.0)[0] for k in range(8)]
+    sent = 80
+    for seq in range(sent):  # about 300 frames/s: far faster than the tracker
+        harness.send(seq, images[seq % len(images)], 0.0)
+        time.sleep(0.003)
+
+    def settled() -> bool:
+        if not harness.diagnostics:
+            return False
+        d = harness.diagnostics[-1]
+        return int(d["frames_in"]) + int(d["frames_dropped"]) >= sent - 1
+
+    assert harness.spin(30.0, settled), harness.diagnostics[-1:]
+    d = harness.diagnostics[-1]
+    assert int(d["frames_dropped"]) > 0
+    assert len(harness.homographies) == int(d["frames_in"]) < sent  # one output per processed frame
+    seqs = [m.seq for m in harness.homographies]
+    assert seqs == sorted(seqs) and seqs[-1] == sent - 1  # the newest frame is never the one dropped
+    assert proc.stop() == 0
+
+
+def test_absurd_tracker_parameter_exits_with_a_clear_error(ros_env, start_process):
+    proc = start_process(node_command(MODULE, "-p", "tracker.min_inlier_ratio:=3.0"), ros_env, "bad")
+    assert proc.wait(20.0) == 2
+    assert "tracker.min_inlier_ratio must be in (0, 1]" in proc.output()
