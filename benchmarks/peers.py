@@ -591,8 +591,8 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
     ms = per_frame_ms(tracking, len(seq.frames))
     rows = [published_row("ptz_selfcal online (nodes' tracker+calibrator)", seq, published, ms)]
     calibrator = session.calibrator
-    if calibrator is not None:
-        calibrator.reference_id = next((r for r in tracking.reference_id if r is not None), None)
+    if calibrator is not None and session.reference_id not in (None, ""):
+        calibrator.reference_id = int(session.reference_id)  # the map the session calibrated last
     rows.append(final_state_row(seq, tracking, calibrator, ms))
     return rows, tracking
 
@@ -661,10 +661,18 @@ def final_state_row(seq: Sequence, tracking: Tracking, calibrator, ms: tuple[flo
         [i for i in seq.eval_idx if tracking.H_ref[i] is not None
          and tracking.reference_id[i] == calibrator.reference_id], dtype=np.intp,
     )  # fmt: skip
-    if getattr(calibrator.model, "focal", None) is ParamMode.CONSTANT:
-        KR = [fixed_lens_intrinsics(calibrator, tracking.H_ref[i]) for i in idx]
-    else:
-        KR = [calibrator.frame_intrinsics(tracking.H_ref[i])[:2] for i in idx]
+    fixed = getattr(calibrator.model, "focal", None) is ParamMode.CONSTANT
+    keep, KR = [], []
+    for i in idx:
+        try:
+            KR.append(fixed_lens_intrinsics(calibrator, tracking.H_ref[i]) if fixed
+                      else calibrator.frame_intrinsics(tracking.H_ref[i])[:2])  # fmt: skip
+            keep.append(i)
+        except (SelfCalibrationError, np.linalg.LinAlgError, ValueError):
+            continue  # the calibrator refuses this frame's homography: no estimate
+    if not keep:
+        return failed(name, True, "no frame accepted")
+    idx = np.array(keep, dtype=np.intp)
     K = np.array([k for k, _ in KR])
     R = np.array([r for _, r in KR])
     note = "end-of-run calibration replayed"
