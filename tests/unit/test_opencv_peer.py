@@ -76,3 +76,19 @@ def test_binding_correct_when_pp_at_origin() -> None:
 def test_refinement_mask_order() -> None:
     mask = opencv_peer.refinement_mask("x_x_x")
     assert mask.tolist() == [[1, 0, 1], [0, 0, 1], [0, 0, 0]]
+
+
+def test_upper_cholesky_is_the_upper_factor() -> None:
+    K = intrinsic_matrix(950.0, 612.0, 371.0, aspect=0.98, skew=0.003)
+    U = opencv_peer.upper_cholesky(7.0 * K @ K.T)
+    assert np.allclose(np.tril(U, -1), 0.0)
+    np.testing.assert_allclose(U, K, atol=1e-9 * 950.0)
+
+
+def test_autostitch_focal_parses_scaled_blocks(tmp_path: Path) -> None:
+    import peers
+
+    block = "C:\\x\\img{0}.jpg\n384 512\n\n{1} 0 255.5\n0 {1} 191.5\n0 0 1\n\n1 0 0\n0 1 0\n0 0 1\n\n{2}\n\n"
+    (tmp_path / "autostitch_pano.txt").write_text(block.format(0, 1, 700.0) + block.format(1, 2, 351.0))
+    assert peers.autostitch_focal(tmp_path) == pytest.approx(701.0)
+    assert peers.autostitch_focal(tmp_path / "missing") is None
