@@ -175,7 +175,9 @@ class FrameIngest(Node):
             else ReliabilityPolicy.RELIABLE,
         )
         encoder_qos = QoSProfile(depth=100, reliability=sensor.reliability)
-        self._pub = self.create_publisher(IngestedFrame, topics.FRAME_IN, reliable_qos())
+        # latest: the writer keeps only the newest frames too, so a slow tracker never backs frames up here
+        out_qos = reliable_qos() if p["queue_policy"] == "lossless" else reliable_qos(p["queue_depth"])
+        self._pub = self.create_publisher(IngestedFrame, topics.FRAME_IN, out_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
         if p["input"] in ("raw", "both"):
             self.create_subscription(Image, topics.IMAGE_RAW, self._on_raw, sensor)

@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", required=True, metavar="OUT_BAG", help="output bag directory to create (mcap)"
     )
     parser.add_argument("--params", metavar="FILE", help="parameter YAML (default: config/ptz_selfcal.yaml)")
-    parser.add_argument("--window", type=int, default=3, help="images in flight at most (lock-step window)")
+    parser.add_argument("--window", type=int, default=4, help="images in flight at most (lock-step window)")
     parser.add_argument(
         "--timeout",
         type=float,
@@ -104,7 +104,8 @@ class RunStats:
     lost: int = 0  # no CameraInfo within the timeout
     unmatched: int = 0  # CameraInfo for no image in flight (late, or a stamp the player never sent)
     recorded: dict[str, int] = field(default_factory=dict)
-    latencies: list[float] = field(default_factory=list)
+    latencies: list[float] = field(default_factory=list)  # image sent -> its CameraInfo received
+    tracker_latencies: list[float] = field(default_factory=list)  # image sent -> its homography received
     started: float = 0.0
     finished: float = 0.0
     cpu_seconds: dict[str, float] = field(default_factory=dict)
@@ -182,21 +183,28 @@ def run(args: argparse.Namespace) -> int:
         finally:
             writer.close()
     if not args.quiet:
-        lat = sorted(stats.latencies)
-        p50 = lat[len(lat) // 2] * 1e3 if lat else float("nan")
-        p95 = lat[int(0.95 * (len(lat) - 1))] * 1e3 if lat else float("nan")
+        p50, p95 = _percentiles_ms(stats.latencies)
+        t50, t95 = _percentiles_ms(stats.tracker_latencies)
         coverage = 100.0 * stats.calibrated / stats.total if stats.total else 0.0
         print(
             f"run: {stats.calibrated}/{stats.total} images got a CameraInfo (coverage {coverage:.1f}%), "
             f"{stats.skipped} skipped by the nodes, {stats.lost} lost (timeout), "
             f"{stats.unmatched} unmatched; "
-            f"{stats.rate:.1f} frames/s, latency in lock-step p50 {p50:.1f} ms p95 {p95:.1f} ms; "
+            f"{stats.rate:.1f} frames/s, latency in lock-step p50 {p50:.1f} ms p95 {p95:.1f} ms "
+            f"(to the homography: p50 {t50:.1f} ms p95 {t95:.1f} ms); "
             f"wrote {out}",
             file=sys.stderr,
         )
         cpu = {**stats.cpu_seconds, "run (player+recorder)": _own_cpu_seconds()}
         print(f"run: CPU seconds: {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}", file=sys.stderr)
     return 0
+
+
+def _percentiles_ms(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return float("nan"), float("nan")
+    ordered = sorted(values)
+    return ordered[len(ordered) // 2] * 1e3, ordered[int(0.95 * (len(ordered) - 1))] * 1e3
 
 
 def _own_cpu_seconds() -> float:
@@ -232,6 +240,7 @@ class _Replay:
         self.stats = RunStats(total=total)
         self.in_flight: deque[_InFlight] = deque()
         self.stamp_times: OrderedDict[int, int] = OrderedDict()  # image stamp -> input bag time
+        self.sent_times: OrderedDict[int, float] = OrderedDict()  # image stamp -> when it was sent
         self.last_bag_time = 0
         self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
         self.encoder_topic = topics.bag_topic(topics.JOINT_STATES)
@@ -259,6 +268,10 @@ class _Replay:
         name = topics.bag_topic(topic)
         self.writer.write_raw(name, bag_time, raw)
         self.stats.recorded[name] = self.stats.recorded.get(name, 0) + 1
+        if topic == topics.HOMOGRAPHY and stamp is not None:
+            sent = self.sent_times.get(stamp)
+            if sent is not None:
+                self.stats.tracker_latencies.append(time.monotonic() - sent)
         if topic == topics.CAMERA_INFO and stamp is not None:
             self._resolve(stamp)
         elif topic == topics.DIAGNOSTICS:
@@ -431,8 +444,11 @@ class _Replay:
                 stamp = header_stamp_ns(msg.raw)
                 stamp = stamp if stamp is not None else msg.timestamp_ns
                 self.stamp_times[stamp] = msg.timestamp_ns
+                self.sent_times[stamp] = time.monotonic()
                 while len(self.stamp_times) > 4096:
                     self.stamp_times.popitem(last=False)
+                while len(self.sent_times) > 4096:
+                    self.sent_times.popitem(last=False)
                 self.last_bag_time = msg.timestamp_ns
                 self.in_flight.append(_InFlight(stamp, msg.timestamp_ns, time.monotonic(), stats.sent))
                 image_pub.publish(msg.raw)
