@@ -66,7 +66,7 @@ def rss_mb() -> float:
 
 
 # --------------------------------------------------------------------------------------------------
-def accuracy(bag: Path | None, work: Path, lines: list[str]) -> None:
+def accuracy(bag: Path | None, work: Path, lines: list[str], repeats: int = 3) -> None:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", "168")
     if bag is None:
@@ -78,49 +78,66 @@ def accuracy(bag: Path | None, work: Path, lines: list[str]) -> None:
         lines.append(
             f"synth bag: {bag} (300 frames 1280x720 JPEG, defaults) in {time.monotonic() - start:.1f} s"
         )
-    out = work / "eval"
-    status = cli_main(["eval", str(bag), "--out-dir", str(out), "--quiet"])
-    if status:
-        raise SystemExit(f"eval failed ({status})")
     import json
 
-    report = json.loads((out / "report.json").read_text())
-    m = report["metrics"]
-    late = {k: v["after_warmup"] for k, v in m.items() if isinstance(v, dict) and "after_warmup" in v}
-    perf = report.get("performance", {})
-    fps = perf.get("run_throughput_fps") or math.nan
-    rows = [
-        ("focal error median (%)", 100 * late["focal_error"]["median"], "<=", TARGETS["focal_median_pct"]),
-        ("focal error p90 (%)", 100 * late["focal_error"]["p90"], "<=", TARGETS["focal_p90_pct"]),
-        (
-            "principal point error median (px)",
-            late["principal_point_error_px"]["median"],
-            "<=",
-            TARGETS["pp_median_px"],
-        ),
-        (
-            "pairwise rotation error median (deg)",
-            late.get("rotation_error_deg", {}).get("median", math.nan),
-            "<=",
-            TARGETS["rotation_median_deg"],
-        ),
-        ("coverage", report["coverage"], ">=", TARGETS["coverage"]),
-        ("run throughput (frames/s)", fps, ">=", TARGETS["throughput_fps"]),
+    measured: list[list[float]] = []
+    reports = []
+    for k in range(repeats):
+        out = work / f"eval_{k}"
+        load = os.getloadavg()[0]
+        status = cli_main(["eval", str(bag), "--out-dir", str(out), "--quiet"])
+        if status:
+            raise SystemExit(f"eval failed ({status})")
+        report = json.loads((out / "report.json").read_text())
+        report["load_before"] = load
+        reports.append(report)
+        late = {k: v["after_warmup"] for k, v in report["metrics"].items() if "after_warmup" in v}
+        measured.append(
+            [
+                100 * late["focal_error"]["median"],
+                100 * late["focal_error"]["p90"],
+                late["principal_point_error_px"]["median"],
+                late.get("rotation_error_deg", {}).get("median", math.nan),
+                report["coverage"],
+                report.get("performance", {}).get("run_throughput_fps") or math.nan,
+            ]
+        )
+    labels = [
+        ("focal error median (%)", "<=", TARGETS["focal_median_pct"]),
+        ("focal error p90 (%)", "<=", TARGETS["focal_p90_pct"]),
+        ("principal point error median (px)", "<=", TARGETS["pp_median_px"]),
+        ("pairwise rotation error median (deg)", "<=", TARGETS["rotation_median_deg"]),
+        ("coverage", ">=", TARGETS["coverage"]),
+        ("run throughput (frames/s)", ">=", TARGETS["throughput_fps"]),
     ]
+    values = np.array(measured)
     lines.append("")
     lines.append(
-        f"1. Accuracy after the first 10% of frames ({report['frames']['input']} frames, eval report {out})"
+        f"1. Accuracy after the first 10% of frames ({reports[0]['frames']['input']} frames), "
+        f"{repeats} runs of eval (the live pipeline is timing dependent: the worker's solves land "
+        "between frames), median and range"
     )
-    lines.append(f"   {'metric':<40} {'measured':>10} {'target':>10}  ok")
-    for label, value, op, target in rows:
-        ok = (value <= target) if op == "<=" else (value >= target)
-        lines.append(f"   {label:<40} {value:>10.4f} {op + ' ' + str(target):>10}  {'yes' if ok else 'NO'}")
-    lines.append(f"   status counts: {report['status_counts']}")
+    lines.append(f"   {'metric':<40} {'median':>9} {'min':>9} {'max':>9} {'target':>9}  ok (median)")
+    for (label, op, target), column in zip(labels, values.T):
+        med = float(np.median(column))
+        ok = (med <= target) if op == "<=" else (med >= target)
+        lines.append(
+            f"   {label:<40} {med:>9.4f} {column.min():>9.4f} {column.max():>9.4f} "
+            f"{op + ' ' + str(target):>9}  {'yes' if ok else 'NO'}"
+        )
+    loads = ", ".join(f"{r['load_before']:.1f}" for r in reports)
+    lines.append(
+        f"   machine load average (1 min) before each run: {loads} on {os.cpu_count()} CPUs "
+        "(throughput is only meaningful on an otherwise idle machine)"
+    )
+    report = reports[len(reports) // 2]
+    perf = report.get("performance", {})
+    lines.append(f"   status counts (run {len(reports) // 2 + 1}): {report['status_counts']}")
     lines.append(
         f"   run wall time {perf.get('run_wall_s', math.nan):.1f} s incl. node start-up; "
         f"calibrator frame path p95 {perf.get('calibrator_frame_ms_p95') or math.nan:.2f} ms"
     )
-    lines.append("   table printed by eval:")
+    lines.append("   table printed by eval (that run):")
     lines += ["   | " + line for line in evaluate.format_table(report).splitlines()]
 
 
@@ -163,9 +180,9 @@ def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
             reference_id="ref",
             zoom=f,
         )
-        t0 = time.perf_counter()
+        t0 = time.thread_time()  # CPU time: other processes on the machine do not inflate it
         out = session.process(frame)
-        t1 = time.perf_counter()
+        t1 = time.thread_time()
         if new_kf:
             keyframes[j] = H
             prev = j - keyframe_every
@@ -181,7 +198,7 @@ def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
                 )
                 keyframes.pop(prev - keyframe_every, None)
             session.step(0.5)
-        t2 = time.perf_counter()
+        t2 = time.thread_time()
         frame_t[j], total_t[j] = t1 - t0, t2 - t0
         errors.append(abs(out.K[0, 0] / f - 1.0) if out.status in ("CALIBRATING", "CONVERGED") else math.nan)
         if j + 1 in (2000, n):
@@ -221,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", type=Path, help="an existing synth bag (default: render one)")
     parser.add_argument("--frames-long", type=int, default=10_000)
     parser.add_argument("--keyframe-every", type=int, default=30)
+    parser.add_argument("--repeats", type=int, default=3, help="eval runs for the accuracy figures")
     parser.add_argument("--skip-accuracy", action="store_true")
     parser.add_argument("--skip-flatness", action="store_true")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "pipeline.txt")
@@ -231,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     with tempfile.TemporaryDirectory(prefix="ptz_pipeline_") as tmp:
         if not args.skip_accuracy:
-            accuracy(args.bag, Path(tmp), lines)
+            accuracy(args.bag, Path(tmp), lines, max(1, args.repeats))
             print("\n".join(lines), flush=True)
         if not args.skip_flatness:
             flatness(args.frames_long, args.keyframe_every, lines)

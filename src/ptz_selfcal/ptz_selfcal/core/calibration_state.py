@@ -384,7 +384,8 @@ class CalibratorSession:
         self.image_size: tuple[int, int] | None = None
         self.keyframe_zoom: dict[int, float] = {}
         self._sampled_keyframes: set[int] = set()
-        self._neighbour: dict[int, int] = {}
+        self._neighbour: dict[int, tuple[int, Array | None]] = {}  # keyframe -> (linked keyframe, H)
+        self._keyframe_H: dict[int, Array] = {}  # keyframe -> H reference -> keyframe (as tracked)
         self._seen_keyframes: set[int] = set()
         self.last_good: FrameOutput | None = None
         self.zoom_model = ZoomModel()
@@ -454,6 +455,9 @@ class CalibratorSession:
         kid = int(frame.keyframe_id)
         if frame.tracking_state == "NEW_KEYFRAME" and kid not in self._seen_keyframes:
             self._seen_keyframes.add(kid)
+            self._keyframe_H[kid] = H
+            if len(self._keyframe_H) > 4096:
+                self._keyframe_H.pop(next(iter(self._keyframe_H)))
             self._pending.append(_PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom)))
         snap = self._snapshot
         if snap is not None and snap.calibrated:
@@ -478,18 +482,43 @@ class CalibratorSession:
         Otherwise the reference calibration is transferred by the frame's homography (eq. 20).
         """
         K_ref, R_ref, sigma_f = snap.calibrator.frame_intrinsics(H)
+        model, size = snap.calibrator.model, snap.calibrator.image_size
         local = snap.keyframes.get(keyframe_id)
-        hops, kid = 0, keyframe_id
-        while local is None and kid in self._neighbour and hops < 16:  # newest keyframes: not solved yet
-            kid, hops = self._neighbour[kid], hops + 1
-            local = snap.keyframes.get(kid)
+        if local is None:
+            local = self._unsolved_keyframe(snap, keyframe_id)
         if local is None:
             return K_ref, R_ref, sigma_f
         H_k, K_k, R_k = local
         H_local = H @ np.linalg.inv(H_k)
-        K = intrinsics_from_transferred_diac(H_local, K_k, snap.calibrator.model, snap.calibrator.image_size)
+        K = intrinsics_from_transferred_diac(H_local, K_k, model, size)
         R = rotation_from_homography(H_local, K_k, K) @ R_k
         return K, R, sigma_f * K[1, 1] / K_ref[1, 1]
+
+    def _unsolved_keyframe(self, snap: _Snapshot, keyframe_id: int) -> tuple[Array, Array, Array] | None:
+        """(H_ref_to_kf, K, R) of a keyframe the solve has not seen yet (the newest ones).
+
+        Follows the tracker's keyframe links back to a solved keyframe and carries its refined K and R
+        forward through the links' own homographies (direct keyframe-to-keyframe measurements), so the
+        new keyframe's calibration does not depend on the tracker's long chain to the reference.
+        """
+        chain: list[Array] = []
+        kid = keyframe_id
+        while kid not in snap.keyframes and kid in self._neighbour and len(chain) < 16:
+            kid, h = self._neighbour[kid]
+            chain.append(h)
+        solved = snap.keyframes.get(kid)
+        if solved is None:
+            return None
+        H_kf = self._keyframe_H.get(keyframe_id)
+        if H_kf is None or any(h is None for h in chain):  # links without their homography
+            return solved
+        _, K, R = solved
+        model, size = snap.calibrator.model, snap.calibrator.image_size
+        for h in reversed(chain):
+            K_next = intrinsics_from_transferred_diac(h, K, model, size)
+            R = rotation_from_homography(h, K, K_next) @ R
+            K = K_next
+        return H_kf, K, R
 
     def _calibrated_output(
         self, snap: _Snapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float
@@ -616,8 +645,15 @@ class CalibratorSession:
 
     # ---- keyframe matches (frame thread queues, worker applies) ------------------------------------
     def add_keyframe_matches(
-        self, keyframe_id: int, other_keyframe_id: int, points: Array, other_points: Array
+        self,
+        keyframe_id: int,
+        other_keyframe_id: int,
+        points: Array,
+        other_points: Array,
+        H: Array | None = None,
     ) -> bool:
+        """Inlier matches between two keyframes (points in keyframe_id, other_points in the other);
+        H maps other_keyframe_id pixels to keyframe_id pixels (KeyframeMatches.h)."""
         a = np.asarray(points, dtype=float).reshape(-1, 2)
         b = np.asarray(other_points, dtype=float).reshape(-1, 2)
         if len(a) != len(b) or len(a) < 8 or not (np.isfinite(a).all() and np.isfinite(b).all()):
@@ -627,7 +663,13 @@ class CalibratorSession:
             return False
         self._pending_matches.append(KeyframeMatchSet(int(keyframe_id), int(other_keyframe_id), a, b))
         # a keyframe not yet in the solve borrows the calibration of the keyframe it is linked to
-        self._neighbour.setdefault(int(keyframe_id), int(other_keyframe_id))
+        h = None
+        if H is not None:
+            h = np.asarray(H, dtype=float).reshape(3, 3)
+            if not (np.all(np.isfinite(h)) and abs(np.linalg.det(h)) > 0.0):
+                h = None
+        if int(keyframe_id) not in self._neighbour and int(other_keyframe_id) != int(keyframe_id):
+            self._neighbour[int(keyframe_id)] = (int(other_keyframe_id), h)
         if len(self._neighbour) > 4096:
             self._neighbour.pop(next(iter(self._neighbour)))
         self.counters["keyframe_matches"] += 1

@@ -272,7 +272,9 @@ class CalibratorNode(Node):
         except ValueError:
             self._warn_once("bad_keyframe_matches", "point arrays of odd length")
             return
-        if not self._session.add_keyframe_matches(int(msg.keyframe_id), int(msg.other_keyframe_id), a, b):
+        h = np.asarray(msg.h, dtype=float)
+        h = h.reshape(3, 3) if h.size == 9 else None
+        if not self._session.add_keyframe_matches(int(msg.keyframe_id), int(msg.other_keyframe_id), a, b, h):
             self._warn_once(
                 "bad_keyframe_matches", "unusable keyframe matches (too few or non-finite points)"
             )
