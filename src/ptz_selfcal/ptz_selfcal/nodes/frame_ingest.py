@@ -256,7 +256,9 @@ class FrameIngest(Node):
             self._note(
                 "image_stamp_out_of_order", f"image stamp {t:.6f} older than {self._newest_image_time:.6f}"
             )
-        self._newest_image_time = t if self._newest_image_time is None else max(t, self._newest_image_time)
+        # The latest image (not the largest stamp) is the reference of the encoders' far-future check, so
+        # one image with a wild stamp does not disable the check for good.
+        self._newest_image_time = t
         self._pending.append(_Pending(frame, header, time.monotonic()))
         self._flush_pending()
 

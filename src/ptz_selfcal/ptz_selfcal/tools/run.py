@@ -74,7 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--namespace", help="namespace of the nodes (default: a private one per run)")
     parser.add_argument("--record-frames", action="store_true", help="also record frame_in (working images)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many images (0: all)")
-    parser.add_argument("--quiet", action="store_true", help="no node output, no progress lines")
+    parser.add_argument(
+        "--quiet", action="store_true", help="no node output, no progress lines (summary only)"
+    )
     parser.add_argument("--calibrator-module", default=NODE_MODULES["calibrator"], help=argparse.SUPPRESS)
 
 
@@ -182,21 +184,21 @@ def run(args: argparse.Namespace) -> int:
             ).run()
         finally:
             writer.close()
-    if not args.quiet:
-        p50, p95 = _percentiles_ms(stats.latencies)
-        t50, t95 = _percentiles_ms(stats.tracker_latencies)
-        coverage = 100.0 * stats.calibrated / stats.total if stats.total else 0.0
-        print(
-            f"run: {stats.calibrated}/{stats.total} images got a CameraInfo (coverage {coverage:.1f}%), "
-            f"{stats.skipped} skipped by the nodes, {stats.lost} lost (timeout), "
-            f"{stats.unmatched} unmatched; "
-            f"{stats.rate:.1f} frames/s, latency in lock-step p50 {p50:.1f} ms p95 {p95:.1f} ms "
-            f"(to the homography: p50 {t50:.1f} ms p95 {t95:.1f} ms); "
-            f"wrote {out}",
-            file=sys.stderr,
-        )
-        cpu = {**stats.cpu_seconds, "run (player+recorder)": _own_cpu_seconds()}
-        print(f"run: CPU seconds: {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}", file=sys.stderr)
+    # The summary is printed even with --quiet (eval and benchmarks read it).
+    p50, p95 = _percentiles_ms(stats.latencies)
+    t50, t95 = _percentiles_ms(stats.tracker_latencies)
+    coverage = 100.0 * stats.calibrated / stats.total if stats.total else 0.0
+    print(
+        f"run: {stats.calibrated}/{stats.total} images got a CameraInfo (coverage {coverage:.1f}%), "
+        f"{stats.skipped} skipped by the nodes, {stats.lost} lost (timeout), "
+        f"{stats.unmatched} unmatched; "
+        f"{stats.rate:.1f} frames/s, latency in lock-step p50 {p50:.1f} ms p95 {p95:.1f} ms "
+        f"(to the homography: p50 {t50:.1f} ms p95 {t95:.1f} ms); "
+        f"wrote {out}",
+        file=sys.stderr,
+    )
+    cpu = {**stats.cpu_seconds, "run (player+recorder)": _own_cpu_seconds()}
+    print(f"run: CPU seconds: {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}", file=sys.stderr)
     return 0
 
 
