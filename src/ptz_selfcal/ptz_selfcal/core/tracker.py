@@ -1,12 +1,17 @@
 """Keyframe-based homography tracker for a rotating and zooming camera (paper sections 2.2 and 4.2).
 
-Every frame: pyramidal KLT frame to frame at the working resolution; each track remembers its position
-in the current keyframe, so the keyframe -> frame infinite homography is fitted to measured positions
-(USAC/MAGSAC, then LM on the inliers). A new keyframe is made when overlap, scale or the surviving
-tracks drop; it is linked to the previous keyframe and to older overlapping ones by descriptor
-re-matching plus a photometric KLT refinement, and its reference -> keyframe homography is chained
-through the link nearest to the reference (fewest hops), so drift does not grow without bound when the
-camera comes back. After a loss, ORB matching against the stored keyframes relocalises the camera.
+Per frame (working resolution): the current keyframe is warped by the constant-velocity prediction of
+its keyframe -> frame homography and pyramidal KLT (forward-backward checked) measures the residual
+motion of the keyframe's corners. Every track is thus a measured keyframe position paired with a
+current position, without the drift of frame-to-frame chaining and without the bias translational
+KLT has under zoom (klt_source="frame" gives classic frame-to-frame KLT). The keyframe -> frame
+infinite homography comes from seeded USAC/MAGSAC, then LM on the inliers (core.homography).
+A new keyframe is made when the overlap, the scale or the surviving tracks drop. It is linked to its
+parent (the tracked fit) and to older overlapping keyframes, fewest hops to the reference first, each
+re-measured independently of the chain (photometric KLT against the warped older keyframe, with
+descriptor re-matching as fallback); its reference -> keyframe homography goes through the link with
+the fewest hops, so chained error stays bounded when the camera comes back. After a loss (black
+frame, cut, fast move) descriptor matching against the stored keyframes relocalises the camera.
 Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
 """
 
@@ -108,6 +113,14 @@ class KeyframeLink:
 
 @dataclass(frozen=True)
 class TrackResult:
+    """One frame's output. Ids are frame indices (0-based count of track() calls since reset).
+
+    H_ref maps the reference (first keyframe of the current map) to this frame; H_keyframe maps the
+    keyframe `keyframe_id` to this frame. On NEW_KEYFRAME / RELOCALISED the frame itself is the new
+    keyframe (keyframe_id = its index, H_keyframe = I) and `links` holds its measured links to older
+    keyframes (the calibrator's bundle adjustment input). TRACKING_LOST / TEXTURELESS: no H at all.
+    """
+
     state: TrackingState
     frame_index: int
     stamp: float | None
@@ -154,6 +167,7 @@ class HomographyTracker:
 
     # ------------------------------------------------------------------ public API
     def reset(self) -> None:
+        """Forget every keyframe and track: the next frame starts a new map (frame ids restart at 0)."""
         self._keyframes: OrderedDict[int, Keyframe] = OrderedDict()
         self._reference_id: int | None = None
         self._keyframe_id: int | None = None
@@ -178,9 +192,12 @@ class HomographyTracker:
         image = np.ascontiguousarray(image_work, np.uint8)
         if image.ndim != 2:
             raise ValueError("the tracker expects a single-channel (mono8) image")
-        if self._scale is not None and abs(scale - self._scale) > 1e-12:
-            _LOG.info("working scale changed from %s to %s: tracker reset", self._scale, scale)
+        shape_changed = self._previous is not None and self._previous.shape != image.shape
+        if shape_changed or (self._scale is not None and abs(scale - self._scale) > 1e-12):
+            _LOG.info("image size or working scale changed: new map")
+            frame_index = self._frame_index
             self.reset()
+            self._frame_index = frame_index  # ids stay unique over the tracker's life
         self._scale = scale
         self._frame_index += 1
         if self._reference_id is None:
@@ -531,7 +548,7 @@ class HomographyTracker:
                 return self._commit_keyframe(
                     image, stamp, corners, links, TrackingState.RELOCALISED, len(fit.inliers)
                 )
-        if self._lost_frames >= c.new_map_after_lost:
+        if self._lost_frames > c.new_map_after_lost:
             _LOG.info("relocalisation failed for %d frames: starting a new map", self._lost_frames)
             self._reference_id = None
             return self._start_map(image, stamp)
