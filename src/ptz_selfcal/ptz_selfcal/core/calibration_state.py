@@ -455,6 +455,8 @@ class CalibratorSession:
         kid = int(frame.keyframe_id)
         if frame.tracking_state == "NEW_KEYFRAME" and kid not in self._seen_keyframes:
             self._seen_keyframes.add(kid)
+            if len(self._seen_keyframes) > 8192:  # bounded memory: ids grow with the frame index
+                self._seen_keyframes = set(sorted(self._seen_keyframes)[4096:])
             self._keyframe_H[kid] = H
             if len(self._keyframe_H) > 4096:
                 self._keyframe_H.pop(next(iter(self._keyframe_H)))
@@ -740,6 +742,13 @@ class CalibratorSession:
                 duty = min(max(self.config.max_solve_duty, 1e-3), 1.0)
                 wait = max(self.config.min_solve_period_s, spent * (1.0 - duty) / duty)
                 self._next_solve = time.monotonic() + wait
+            if added:  # bounded memory: forget keyframes the calibrator dropped
+                live = {int(kf.keyframe_id) for kf in calibrator.keyframes}
+                if self.solver.reference_keyframe_id is not None:
+                    live.add(int(self.solver.reference_keyframe_id))
+                self.keyframe_zoom = {k: v for k, v in self.keyframe_zoom.items() if k in live}
+                self._sampled_keyframes &= live
+                self.solver.rotations = {k: v for k, v in self.solver.rotations.items() if k in live}
             if added or solved or self._snapshot is None:
                 self._publish_snapshot()
                 self._dirty = True
