@@ -166,6 +166,7 @@ class FrameIngest(Node):
         self._newest_image_time: float | None = None
         self._pending: deque[_Pending] = deque()
         self._last_skipped_total = 0
+        self._decode_times: deque[float] = deque(maxlen=1000)  # seconds per conversion to working mono8
 
         sensor = QoSProfile(
             history=HistoryPolicy.KEEP_ALL if p["queue_policy"] == "lossless" else HistoryPolicy.KEEP_LAST,
@@ -242,8 +243,10 @@ class FrameIngest(Node):
         if stamp_ns in self._recent_stamps:
             self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} was already ingested")
             return
+        start = time.perf_counter()
         try:
             frame = convert()
+            self._decode_times.append(time.perf_counter() - start)
         except FrameError as exc:
             self._skip(exc.kind, str(exc))
             return
@@ -336,6 +339,10 @@ class FrameIngest(Node):
         counters["encoder_samples_accepted"] = self._encoders.samples_accepted
         counters["encoder_samples_rejected"] = sum(self._encoders.rejections.values())
         counters["pending_frames"] = len(self._pending)
+        if self._decode_times:
+            d = sorted(self._decode_times)
+            counters["decode_ms_median"] = f"{1e3 * d[len(d) // 2]:.2f}"
+            counters["decode_ms_p95"] = f"{1e3 * d[int(0.95 * (len(d) - 1))]:.2f}"
         skipped = sum(v for k, v in self._counts.items() if k.startswith("skipped_"))
         counters["skipped_total"] = skipped
         status = DiagnosticStatus()
