@@ -42,8 +42,9 @@ def gone(pid: int) -> bool:
     return not status.exists() or "zombie" in status.read_text()
 
 
-def graph_nodes(namespace: str, timeout: float) -> set[str]:
-    """Node names visible in the ROS graph under a namespace (polls until all three or timeout)."""
+def graph_nodes(namespace: str, timeout: float) -> tuple[set[str], set[str]]:
+    """Node names visible in the ROS graph under a namespace (polls until all three or timeout), and
+    the topic names of the graph."""
     import rclpy
 
     context = rclpy.Context()
@@ -57,7 +58,7 @@ def graph_nodes(namespace: str, timeout: float) -> set[str]:
             if set(NODES) <= found:
                 break
             time.sleep(0.1)
-        return found
+        return found, {name for name, _types in node.get_topic_names_and_types()}
     finally:
         node.destroy_node()
         context.try_shutdown()
@@ -82,7 +83,10 @@ def test_three_processes_ctrl_c_stops_all_with_exit_0(launch_env, start_process)
     )
     pids = wait_started(proc, 3)
     assert set(pids) == set(NODES) and len({p[0] for p in pids.values()}) == 3
-    assert set(NODES) <= graph_nodes("/cam7", 20.0), proc.output()
+    nodes, topic_names = graph_nodes("/cam7", 20.0)
+    assert set(NODES) <= nodes, proc.output()
+    assert "/cam7/camera/image" in topic_names and "/cam7/ptz/image_raw" not in topic_names  # remapped
+    assert "/cam7/ptz/selfcal/camera_info" in topic_names
     assert proc.alive()
     assert proc.stop(timeout=20.0) == 0, proc.output()
     for name, (pid,) in pids.items():
