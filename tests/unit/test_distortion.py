@@ -312,3 +312,34 @@ def test_homographies_on_corrected_coordinates():
     corrected = undistorted_homography(H_raw, lam_true(f_i), lam_true(f_j), CENTRE, CENTRE, f_i, f_j, W, H)
     corrected_error = np.median(transfer_error(corrected, H_true, u_i))
     assert raw_error > 8.0 and corrected_error < 1.0
+
+
+def test_incremental_estimator_for_the_calibrator():
+    from ptz_selfcal.core.distortion_estimation import KeyframeDistortionEstimator
+
+    # 0.15 px: the KLT matches of the image benchmark have 0.06-0.13 px transfer rms after correction
+    f, matches = zoom_sequence(n_kf=8, noise=0.15, seed=2)
+    est = KeyframeDistortionEstimator(W, H, max_matches=6, max_points_per_match=200)
+    assert est.solve() is None and est.lam_at_focal(F_WIDE) == 0.0
+    ids = [10 * (k + 1) for k in range(len(f))]  # the calibrator's keyframe ids
+    for m in matches:
+        est.set_keyframe(ids[m.i], f[m.i], CENTRE)  # older keyframe: calibrated by now
+        est.set_keyframe(ids[m.j], 1.08 * f[m.j], CENTRE)  # newest keyframe: focal length still nominal
+        est.add_match(ids[m.i], ids[m.j], m.pts_i, m.pts_j)
+        est.solve()
+    assert est.match_count == 6  # bounded
+    # calibration refines the focal lengths of the live keyframes: lam follows (lam / f^2 invariant)
+    live = sorted({m.i for m in est._matches} | {m.j for m in est._matches})
+    for kid in live:
+        k = ids.index(kid)
+        est.set_keyframe(kid, f[k], CENTRE)
+        assert division_error(est.lam(kid), lam_true(f[k]), f[k]) < 1.0
+    est.solve()
+    # the curve learned from live and retired keyframes covers the whole zoom range
+    for fk in (f[0], f[3], f[-1]):
+        assert division_error(est.lam_at_focal(fk), lam_true(fk), fk) < 1.5
+    # its state round-trips for the calibrator's state file
+    restored = DistortionVsFocal.from_dict(est.curve.to_dict())
+    assert restored.predict(f[2]) == pytest.approx(est.curve.predict(f[2]), rel=1e-12)
+    with pytest.raises(ValueError):
+        DistortionVsFocal.from_dict({"degree": 2})
