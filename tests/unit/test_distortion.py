@@ -230,7 +230,9 @@ def test_keyframe_distortion_while_zooming_per_keyframe_and_curve():
     assert per_kf.rms < 0.7 < 2.0 < per_kf.rms_undistorted_model  # correction removes the model error
     assert np.all(np.isfinite(per_kf.sigma_lam)) and np.all(per_kf.sigma_lam > 0)
     # the curve-constrained estimate (lam tied through DistortionVsFocal) is as good or better
-    tied = estimate_keyframe_distortion(matches, f, CENTRE, curve=DistortionVsFocal(W, H))
+    curve = DistortionVsFocal(W, H)
+    tied = estimate_keyframe_distortion(matches, f, CENTRE, curve=curve)
+    np.testing.assert_allclose(curve.predict(f), tied.lam, rtol=1e-12)  # the curve is left fitted
     errors_tied = [division_error(lam, lam_true(fk), fk) for lam, fk in zip(tied.lam, f)]
     assert max(errors_tied) < 0.5
     assert tied.curve_coefficients is not None
@@ -343,3 +345,11 @@ def test_incremental_estimator_for_the_calibrator():
     assert restored.predict(f[2]) == pytest.approx(est.curve.predict(f[2]), rel=1e-12)
     with pytest.raises(ValueError):
         DistortionVsFocal.from_dict({"degree": 2})
+
+
+def test_invalid_matches_are_rejected():
+    few = KeyframeMatch(0, 1, np.zeros((5, 2)), np.zeros((5, 2)))
+    with pytest.raises(ValueError):
+        estimate_keyframe_distortion([few], [F_WIDE, F_WIDE], CENTRE)
+    with pytest.raises(ValueError):
+        estimate_keyframe_distortion([], [F_WIDE], CENTRE)

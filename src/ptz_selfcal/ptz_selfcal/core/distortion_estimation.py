@@ -53,11 +53,6 @@ def _distort_normalised(a: Array, lam: float) -> Array:
     return a * (2.0 / (1.0 + np.sqrt(disc)))[:, None]
 
 
-def _apply(H: Array, a: Array) -> Array:
-    p = a @ H[:, :2].T + H[:, 2]
-    return p[:, :2] / p[:, 2:3]
-
-
 def _homography_from_update(delta: Array, H0: Array) -> Array:
     """H = (I + D) H0 with D[2, 2] = 0: a local 8-parameter chart around H0."""
     D = np.append(delta, 0.0).reshape(3, 3)
@@ -314,8 +309,10 @@ def _pair_residuals(
     a: Array, b: Array, lam_i: float, lam_j: float, H: Array, f_i: float, f_j: float
 ) -> Array:
     """Symmetric transfer residuals in pixels, (4N,)."""
-    res_j = (_distort_normalised(_apply(H, _undistort_normalised(a, lam_i)), lam_j) - b) * f_j
-    res_i = (_distort_normalised(_apply(np.linalg.inv(H), _undistort_normalised(b, lam_j)), lam_i) - a) * f_i
+    res_j = (_distort_normalised(apply_homography(H, _undistort_normalised(a, lam_i)), lam_j) - b) * f_j
+    res_i = (
+        _distort_normalised(apply_homography(np.linalg.inv(H), _undistort_normalised(b, lam_j)), lam_i) - a
+    ) * f_i
     return np.concatenate([res_j.ravel(), res_i.ravel()])
 
 
@@ -412,7 +409,9 @@ def estimate_keyframe_distortion(
 
     focals: (K,) current focal estimates (a nominal value is fine: only lam / f^2 is observed);
     centres: (2,) or (K, 2) distortion centres (principal points); lam0: (K,) starting values.
-    Robust loss (soft_l1, f_scale_px pixels) against residual outliers in the matches.
+    Robust loss (soft_l1, f_scale_px pixels) against residual outliers in the matches. With `curve`,
+    lam_k = curve(f_k) and the curve object is left fitted. Levenberg-Marquardt with the analytic
+    Jacobian on block-sparse normal equations: O(points) per iteration, (8 pairs + K)^2 memory.
     """
     focals = np.asarray(focals, dtype=float).ravel()
     n_kf = len(focals)
@@ -425,6 +424,8 @@ def estimate_keyframe_distortion(
     ]
     if not matches:
         raise ValueError("no keyframe matches")
+    if any(len(a) < 8 or len(a) != len(b) for a, b in norm):
+        raise ValueError("every match needs at least 8 correspondences of equal count")
 
     # distortion parameters: per-keyframe lam, or curve coefficients (in corner-shift units)
     if curve is not None:
@@ -501,6 +502,8 @@ def estimate_keyframe_distortion(
         sigma = np.where(seen, np.sqrt(np.maximum(np.diag(cov)[:n_kf], 0.0)), np.inf)
     else:
         sigma = _curve_lambda_sigmas(cov[:n_dist, :n_dist], focals, curve, x[:n_dist])
+        curve.coefficients = x[:n_dist].copy()  # the curve passed in is now fitted
+        curve.f_range = (float(focals.min()), float(focals.max()))
     homographies = [
         _to_pixels(
             _homography_from_update(x[n_dist + 8 * k : n_dist + 8 * k + 8], H0[k]),
