@@ -186,3 +186,24 @@ def test_camera_info_fields_keep_p_consistent_with_k():
     )
     assert fields["d"] == [-0.1, 0.0, 0.0, 0.0, 0.0] and fields["distortion_model"] == "plumb_bob"
     assert fields["r"] == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+
+
+@pytest.mark.parametrize(
+    ("size", "working_width"), [((1920, 1080), 640), ((1280, 720), 640), ((1000, 750), 250)]
+)
+def test_jpeg_reduced_decoding_keeps_pixel_centres(size, working_width):
+    """Decoding at 1/2, 1/4 (libjpeg) then INTER_AREA by the rest must match full decoding + INTER_AREA:
+    no sub-pixel shift (phase correlation) and close grey levels."""
+    w, h = size
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    img = np.clip(128 + 60 * np.sin(x / 37.0) * np.cos(y / 29.0) + 40 * np.sin((x - y) / 53.0), 0, 255)
+    img = img.astype(np.uint8)
+    data = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    out = compressed_to_working(SimpleNamespace(format="jpeg", data=data), working_width)
+    k = out.factor
+    full = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    reference = cv2.resize(full[: h // k * k, : w // k * k], (w // k, h // k), interpolation=cv2.INTER_AREA)
+    assert out.image.shape == reference.shape
+    (dx, dy), _ = cv2.phaseCorrelate(out.image.astype(np.float64), reference.astype(np.float64))
+    assert abs(dx) < 0.02 and abs(dy) < 0.02
+    assert np.abs(out.image.astype(float) - reference).mean() < 1.5

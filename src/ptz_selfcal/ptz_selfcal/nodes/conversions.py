@@ -183,6 +183,15 @@ def compressed_size(data: bytes | memoryview | np.ndarray) -> tuple[str, int, in
     return "jpeg", 0, 0
 
 
+def _jpeg_reduction(factor: int, wk: int, hk: int) -> int:
+    """The largest libjpeg DCT reduction (8, 4, 2) not above the downscale factor that divides the
+    working block exactly (1: decode at full size)."""
+    for r in (8, 4, 2):
+        if r <= factor and (wk * factor) % r == 0 and (hk * factor) % r == 0:
+            return r
+    return 1
+
+
 def compressed_to_working(msg: Any, working_width: int, limits: ImageLimits | None = None) -> WorkingImage:
     """sensor_msgs/CompressedImage (jpeg, png, "bgr8; jpeg compressed bgr8", 16-bit png) -> mono8."""
     limits = limits or ImageLimits()
@@ -202,15 +211,20 @@ def compressed_to_working(msg: Any, working_width: int, limits: ImageLimits | No
         raise FrameError("undecodable", f"{kind} data without a readable size header")
     _check_size(w, h, limits)
     factor = downscale_factor(w, working_width)
-    if kind == "jpeg" and factor in _JPEG_REDUCED:
-        decoded = cv2.imdecode(data, _JPEG_REDUCED[factor])
-        if decoded is not None:
-            # libjpeg rounds reduced sizes up; keep whole k x k blocks only (as _reduce does).
-            hk, wk = h // factor, w // factor
-            if hk == 0 or wk == 0:
-                raise FrameError("zero_size", f"image of {w}x{h} is smaller than the factor {factor}")
-            return WorkingImage(np.ascontiguousarray(decoded[:hk, :wk]), w, h, factor)
-        raise FrameError("undecodable", f"corrupt {kind} data ({data.size} bytes)")
+    hk, wk = h // factor, w // factor
+    if hk == 0 or wk == 0:
+        raise FrameError("zero_size", f"image of {w}x{h} is smaller than the downscale factor {factor}")
+    reduced = _jpeg_reduction(factor, wk, hk) if kind == "jpeg" else 1
+    if reduced > 1:
+        decoded = cv2.imdecode(data, _JPEG_REDUCED[reduced])
+        if decoded is None:
+            raise FrameError("undecodable", f"corrupt {kind} data ({data.size} bytes)")
+        # The block of full-resolution pixels that makes whole working pixels, at 1/reduced size; then
+        # INTER_AREA by the remaining (possibly fractional) factor keeps the pixel-centre convention.
+        gray = decoded[: hk * factor // reduced, : wk * factor // reduced]
+        if reduced != factor:
+            gray = cv2.resize(gray, (wk, hk), interpolation=cv2.INTER_AREA)
+        return WorkingImage(np.ascontiguousarray(gray), w, h, factor)
     decoded = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if decoded is None:
         raise FrameError("undecodable", f"corrupt {kind} data ({data.size} bytes)")
