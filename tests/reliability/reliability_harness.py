@@ -1,0 +1,433 @@
+"""Shared helpers of the reliability tests: the real node graph in processes, an in-process feeder and
+collector over DDS, rendered PTZ views with exact ground truth, process memory.
+
+Not a conftest.py: the root tests/conftest.py is imported as `conftest` by every test module, and a
+second conftest.py would shadow it. Test modules import this one by name (pytest puts this directory
+on sys.path).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import PANORAMAS, node_command
+
+from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+
+NODE_MODULES = {
+    "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
+    "homography_tracker": "ptz_selfcal.nodes.homography_tracker",
+    "calibrator": "ptz_selfcal.nodes.calibrator",
+}
+T0 = 1_700_000_000.0  # first stamp of every rendered sequence (s)
+
+# statuses of FrameCalibration by value
+STATUS_NAMES = {
+    0: "INITIALISING",
+    1: "CALIBRATING",
+    2: "CONVERGED",
+    3: "DEGENERATE_MOTION",
+    4: "TRACKING_LOST",
+    5: "PREDICTED_FROM_ZOOM",
+}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# rendered views
+@lru_cache(maxsize=2)
+def panorama(name: str = "building.jpg"):
+    from ptz_selfcal.core.render import build_panorama
+
+    path = PANORAMAS / name
+    if not path.exists():
+        pytest.skip(f"panorama {path} not available")
+    return build_panorama(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+
+
+@dataclass(frozen=True)
+class View:
+    pan: float  # radians
+    tilt: float
+    f: float  # full-resolution pixels
+    zoom: float  # encoder value (monotonic in f)
+
+
+def principal_point(width: int, height: int) -> tuple[float, float]:
+    return 0.5 * (width - 1) + 6.0, 0.5 * (height - 1) - 4.0
+
+
+def true_K(view: View, width: int, height: int) -> np.ndarray:
+    return intrinsic_matrix(view.f, *principal_point(width, height))
+
+
+def render(view: View, width: int, height: int, pano: str = "building.jpg") -> np.ndarray:
+    from ptz_selfcal.core.render import render_view
+
+    return render_view(
+        panorama(pano), true_K(view, width, height), ptz_rotation(view.pan, view.tilt), (width, height)
+    )
+
+
+def zoom_of(f: float, f_wide: float) -> float:
+    """A zoom encoder value that grows monotonically with f (counts)."""
+    return 1000.0 * math.log(f / f_wide)
+
+
+def sweep(n: int, width: int, f_wide: float, pan_deg: float = 14.0, tilt_deg: float = 4.0,
+          zoom_max: float = 1.6, cycles: float = 1.0) -> list[View]:  # fmt: skip
+    """A smooth pan/tilt/zoom sweep (enough rotation for the calibrator to solve)."""
+    out = []
+    for k in range(n):
+        s = k / max(n - 1, 1)
+        f = f_wide * (1.0 + (zoom_max - 1.0) * 0.5 * (1.0 - math.cos(2 * math.pi * cycles * s)))
+        pan = math.radians(pan_deg * math.sin(2 * math.pi * cycles * s))
+        tilt = math.radians(tilt_deg * math.sin(4 * math.pi * cycles * s + 0.4))
+        out.append(View(pan, tilt, f, zoom_of(f, f_wide)))
+    return out
+
+
+def f_wide_for(width: int, hfov_deg: float = 50.0) -> float:
+    return 0.5 * width / math.tan(math.radians(0.5 * hfov_deg))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the graph
+def start_graph(
+    start_process: Callable[..., object],
+    env: dict[str, str],
+    ingest: Sequence[str] = (),
+    tracker: Sequence[str] = (),
+    calibrator: Sequence[str] = (),
+    working_width: int = 320,
+    only: Sequence[str] = ("frame_ingest", "homography_tracker", "calibrator"),
+) -> dict[str, object]:
+    """The three nodes as separate processes (-p NAME:=VALUE overrides after the defaults)."""
+
+    def params(*values: str) -> list[str]:
+        return [arg for v in values for arg in ("-p", v)]
+
+    extra = {
+        "frame_ingest": params(
+            f"working_width:={working_width}", "sensor_reliability:=reliable", "diagnostics_period:=0.25",
+            "encoder_wait:=0.3", *ingest,
+        ),
+        "homography_tracker": params("diagnostics_period:=0.25", *tracker),
+        "calibrator": params("diagnostics_period:=0.25", "nominal_hfov_deg:=55.0", *calibrator),
+    }  # fmt: skip
+    return {name: start_process(node_command(NODE_MODULES[name], *extra[name]), env, name) for name in only}
+
+
+def stamp_of(t: float):
+    from builtin_interfaces.msg import Time
+
+    sec = math.floor(t)
+    return Time(sec=int(sec), nanosec=min(round((t - sec) * 1e9), 999_999_999))
+
+
+def ns_of(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def t_ns(t: float) -> int:
+    return ns_of(stamp_of(t))
+
+
+class Feeder:
+    """An in-process rclpy node: publishes images and encoders, collects every output of the graph."""
+
+    def __init__(self, name: str = "reliability_feeder", sensor_qos=None) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
+
+        from ptz_selfcal import topics
+        from ptz_selfcal.nodes.runtime import reliable_qos
+        from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        qos = sensor_qos or reliable_qos()
+        self.raw = self.node.create_publisher(Image, topics.IMAGE_RAW, qos)
+        self.compressed = self.node.create_publisher(CompressedImage, topics.IMAGE_COMPRESSED, qos)
+        self.joints = self.node.create_publisher(JointState, topics.JOINT_STATES, reliable_qos())
+        self.infos: dict[int, list] = defaultdict(list)  # stamp ns -> CameraInfo messages
+        self.info_arrival: dict[int, float] = {}  # stamp ns -> monotonic arrival of its (first) CameraInfo
+        self.info_order: list[int] = []
+        self.frames: dict[int, object] = {}  # stamp ns -> FrameCalibration
+        self.homographies: dict[int, object] = {}
+        self.diagnostics: dict[str, dict[str, str]] = {}  # node name -> last counters
+        self.sent: dict[int, float] = {}  # stamp ns -> monotonic send time
+        self.node.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info, reliable_qos())
+        self.node.create_subscription(
+            FrameCalibration, topics.FRAME_CALIBRATION, self._on_frame, reliable_qos()
+        )
+        self.node.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self._on_h, reliable_qos())
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, reliable_qos(50))
+
+    # -- callbacks
+    def _on_info(self, msg) -> None:
+        ns = ns_of(msg.header.stamp)
+        self.infos[ns].append(msg)
+        self.info_arrival.setdefault(ns, time.monotonic())
+        self.info_order.append(ns)
+
+    def _on_frame(self, msg) -> None:
+        self.frames[ns_of(msg.header.stamp)] = msg
+
+    def _on_h(self, msg) -> None:
+        self.homographies[ns_of(msg.header.stamp)] = msg
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            name = status.name.rsplit("/", 1)[-1]
+            self.diagnostics[name] = {kv.key: kv.value for kv in status.values}
+            self.diagnostics[name]["_message"] = status.message
+            level = status.level
+            self.diagnostics[name]["_level"] = str(level[0] if isinstance(level, bytes) else level)
+
+    # -- spinning
+    def spin(self, seconds: float, until: Callable[[], bool] | None = None) -> bool:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+            if until is not None and until():
+                return True
+        return until is None
+
+    def wait_connected(self, timeout: float = 30.0, compressed: bool = False) -> None:
+        from ptz_selfcal import topics
+
+        image_pub = self.compressed if compressed else self.raw
+        ok = self.spin(
+            timeout,
+            lambda: (
+                image_pub.get_subscription_count() > 0
+                and self.joints.get_subscription_count() > 0
+                and self.node.count_publishers("/" + topics.CAMERA_INFO) > 0
+                and self.node.count_subscribers("/" + topics.HOMOGRAPHY) > 1
+                and self.node.count_subscribers("/" + topics.FRAME_IN) > 0
+            ),
+        )
+        assert ok, "the graph did not connect"
+        self.spin(0.5)
+
+    # -- sending
+    def send_encoders(
+        self, t: float, values: Sequence[float], names: Sequence[str] = ("pan", "tilt", "zoom")
+    ) -> None:
+        from sensor_msgs.msg import JointState
+
+        msg = JointState()
+        msg.header.stamp = stamp_of(t)
+        msg.name = list(names)
+        msg.position = [float(v) for v in values]
+        self.joints.publish(msg)
+
+    def send_image(self, t: float, pixels: np.ndarray, encoding: str = "mono8", step: int | None = None,
+                   data: bytes | None = None, width: int | None = None,
+                   height: int | None = None) -> int:  # fmt: skip
+        msg = image_msg(t, pixels, encoding, step, data, width, height)
+        self.raw.publish(msg)
+        ns = ns_of(msg.header.stamp)
+        self.sent[ns] = time.monotonic()
+        return ns
+
+    def send_compressed(self, t: float, data: bytes, fmt: str = "jpeg") -> int:
+        from sensor_msgs.msg import CompressedImage
+
+        msg = CompressedImage()
+        msg.header.stamp = stamp_of(t)
+        msg.header.frame_id = "ptz_camera"
+        msg.format = fmt
+        msg.data = data
+        self.compressed.publish(msg)
+        ns = ns_of(msg.header.stamp)
+        self.sent[ns] = time.monotonic()
+        return ns
+
+    def send_view(self, t: float, view: View, image: np.ndarray) -> int:
+        self.send_encoders(t, (view.pan, view.tilt, view.zoom))
+        return self.send_image(t, image)
+
+    def wait_info(self, stamp_ns: int, timeout: float = 15.0) -> bool:
+        return self.spin(timeout, lambda: stamp_ns in self.infos and stamp_ns in self.frames)
+
+    def counter(self, node: str, key: str, default: int = 0) -> int:
+        value = self.diagnostics.get(node, {}).get(key)
+        return default if value is None else int(float(value))
+
+    def wait_counter(
+        self, node: str, key: str, predicate: Callable[[int], bool], timeout: float = 10.0
+    ) -> bool:
+        return self.spin(timeout, lambda: predicate(self.counter(node, key, -1)))
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def image_msg(t: float, pixels: np.ndarray, encoding: str = "mono8", step: int | None = None,
+              data: bytes | None = None, width: int | None = None, height: int | None = None):  # fmt: skip
+    import array
+
+    from sensor_msgs.msg import Image
+
+    msg = Image()
+    msg.header.stamp = stamp_of(t)
+    msg.header.frame_id = "ptz_camera"
+    msg.height = int(pixels.shape[0] if height is None else height)
+    msg.width = int(pixels.shape[1] if width is None else width)
+    msg.encoding = encoding
+    channels = pixels.shape[2] if pixels.ndim == 3 else 1
+    msg.step = int(step if step is not None else pixels.shape[1] * pixels.itemsize * channels)
+    payload = data if data is not None else np.ascontiguousarray(pixels).tobytes()
+    buf = array.array("B")
+    buf.frombytes(payload)
+    msg.data = buf
+    return msg
+
+
+# ---------------------------------------------------------------------------------------------------------
+# measurements
+def rss_mb(pid: int) -> float:
+    """Resident memory of a process (MB), NaN when it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return math.nan
+
+
+def focal_error(info, view: View) -> float:
+    return abs(info.k[0] / view.f - 1.0)
+
+
+def percentile(values: Sequence[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values, float), q)) if len(values) else math.nan
+
+
+# ---------------------------------------------------------------------------------------------------------
+# scenarios shared by the tests (CI size) and benchmarks/reliability.py (full size)
+CALIBRATED = {"CALIBRATING", "CONVERGED"}
+LOSS_STATUSES = {"PREDICTED_FROM_ZOOM", "TRACKING_LOST"}
+
+
+@dataclass
+class Sent:
+    stamp_ns: int
+    view: View
+    segment: str
+
+
+class LockStep:
+    """Sends rendered views one at a time and waits for each one's CameraInfo (lossless graph)."""
+
+    def __init__(self, feeder: Feeder, width: int, height: int, fps: float = 30.0, timeout: float = 20.0):
+        self.feeder, self.width, self.height = feeder, width, height
+        self.fps, self.timeout = fps, timeout
+        self.k = 0
+        self.log: list[Sent] = []
+
+    def send(self, view: View, image: np.ndarray | None, segment: str) -> Sent:
+        t = T0 + self.k / self.fps
+        self.k += 1
+        image = render(view, self.width, self.height) if image is None else image
+        ns = self.feeder.send_view(t, view, image)
+        assert self.feeder.wait_info(ns, self.timeout), f"no CameraInfo for frame {self.k - 1} ({segment})"
+        sent = Sent(ns, view, segment)
+        self.log.append(sent)
+        return sent
+
+    def status(self, sent: Sent) -> str:
+        return STATUS_NAMES[self.feeder.frames[sent.stamp_ns].status]
+
+    def error(self, sent: Sent) -> float:
+        return focal_error(self.feeder.infos[sent.stamp_ns][0], sent.view)
+
+
+def motion_blur(image: np.ndarray, length: int) -> np.ndarray:
+    return cv2.blur(image, (max(1, length), 1))
+
+
+def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int = 100, window: int = 16,
+                           bad: int = 8, zoom_max: float = 2.0) -> dict[str, dict]:  # fmt: skip
+    """Warm-up sweep (1x..zoom_max, the zoom model learns that range), zoom in to full zoom, then for each
+    disturbance: a window of views at full zoom, the disturbance, the same window again. Returns per
+    disturbance: frames, statuses and focal errors during it, errors on the window before and after,
+    frames until the calibration came back (recovery) and its wall time."""
+    fw = f_wide_for(width)
+    fmax = zoom_max * fw
+    ls = LockStep(feeder, width, height)
+    for v in sweep(warmup, width, fw, zoom_max=zoom_max):
+        ls.send(v, None, "warmup")
+    for i in range(1, 21):
+        f = fw + (fmax - fw) * i / 20
+        ls.send(View(0.0, 0.0, f, zoom_of(f, fw)), None, "zoom_in")
+    views = [View(math.radians(3.0 * math.sin(2 * math.pi * i / window)), math.radians(0.8 * math.sin(
+        4 * math.pi * i / window)), fmax, zoom_of(fmax, fw)) for i in range(window)]  # fmt: skip
+    images = [render(v, width, height) for v in views]
+    last, last_image = views[-1], images[-1]
+    results: dict[str, dict] = {}
+
+    def run_window(tag: str) -> list[Sent]:
+        return [ls.send(v, im, tag) for v, im in zip(views, images)]
+
+    before = run_window("window")
+    for name in ("black", "blur", "scene_cut", "preset_90deg"):
+        lost: list[Sent] = []
+        if name == "black":
+            lost = [ls.send(last, np.zeros_like(last_image), name) for _ in range(bad)]
+        elif name == "blur":
+            blurred = cv2.GaussianBlur(last_image, (0, 0), 12)
+            lost = [ls.send(last, blurred, name) for _ in range(bad)]
+        elif name == "scene_cut":
+            other = render(last, width, height, "field.jpg")
+            lost = [ls.send(last, other, name) for _ in range(bad)]
+        else:  # 90 degrees of pan in `bad` frames at full zoom, hold, and back: motion-blurred moves
+            step = 90.0 / bad
+            blur_px = int(math.radians(step) * fmax)
+            path = [
+                View(last.pan + math.radians(step * i), last.tilt, fmax, last.zoom) for i in range(1, bad + 1)
+            ]
+            for v in path:
+                lost.append(ls.send(v, motion_blur(render(v, width, height), blur_px), name))
+            for _ in range(bad):
+                lost.append(ls.send(path[-1], None, name + "_hold"))
+            for v in reversed([last, *path[:-1]]):
+                lost.append(ls.send(v, motion_blur(render(v, width, height), blur_px), name))
+        t_back = time.monotonic()
+        after = run_window("window")
+        recovered = next((i for i, s in enumerate(after) if ls.status(s) in CALIBRATED), None)
+        recover_s = math.nan
+        if recovered is not None:
+            recover_s = feeder.info_arrival[after[recovered].stamp_ns] - t_back
+        good_after = after[recovered:] if recovered is not None else []
+        results[name] = {
+            "frames": len(lost),
+            "statuses": [ls.status(s) for s in lost],
+            "errors": [ls.error(s) for s in lost],
+            "before": float(np.median([ls.error(s) for s in before])),
+            "after": float(np.median([ls.error(s) for s in good_after])) if good_after else math.nan,
+            "after_statuses": [ls.status(s) for s in after],
+            "recovery_frames": recovered,
+            "recovery_s": recover_s,
+        }
+        before = after
+    results["_log"] = {"frames": len(ls.log), "stamps": [s.stamp_ns for s in ls.log]}
+    return results
