@@ -353,3 +353,30 @@ def test_invalid_matches_are_rejected():
         estimate_keyframe_distortion([few], [F_WIDE, F_WIDE], CENTRE)
     with pytest.raises(ValueError):
         estimate_keyframe_distortion([], [F_WIDE], CENTRE)
+
+
+def test_frame_distortion_with_known_keyframe_and_prior():
+    from ptz_selfcal.core.distortion_estimation import estimate_frame_distortion
+
+    f_kf, f_fr = 1.2 * F_WIDE, 1.3 * F_WIDE
+    d_kf, d_fr = synthetic_pair(f_kf, f_fr, (0.0, 0.0), (0.2, 0.04), n=250)
+    exact = estimate_frame_distortion(d_kf, d_fr, lam_true(f_kf), CENTRE, f_kf, f_fr)
+    assert exact.lam_i == lam_true(f_kf) and exact.sigma_lam_i == 0.0
+    assert exact.lam_j == pytest.approx(lam_true(f_fr), rel=1e-6) and exact.rms < 1e-6
+    H_true = (
+        intrinsic_matrix(f_fr, *CENTRE)
+        @ ptz_rotation(0.2, 0.04)
+        @ np.linalg.inv(intrinsic_matrix(f_kf, *CENTRE))
+    )
+    np.testing.assert_allclose(exact.H, H_true / H_true[2, 2], rtol=1e-6, atol=1e-9)
+    # few points near the centre barely see distortion: the prior (e.g. the curve) holds the estimate
+    rng = np.random.default_rng(8)
+    d_kf, d_fr = synthetic_pair(f_kf, f_fr, (0.0, 0.0), (0.02, 0.01), n=2000, noise=0.3, seed=9)
+    central = np.linalg.norm(d_fr - CENTRE, axis=1) < 150.0
+    d_kf, d_fr = d_kf[central][:30], d_fr[central][:30]
+    free = estimate_frame_distortion(d_kf, d_fr, lam_true(f_kf), CENTRE, f_kf, f_fr)
+    prior_lam = lam_true(f_fr) * (1.0 + 0.02 * rng.normal())
+    held = estimate_frame_distortion(d_kf, d_fr, lam_true(f_kf), CENTRE, f_kf, f_fr, prior_lam, 0.01)
+    assert free.sigma_lam_j > 5.0 * held.sigma_lam_j and held.sigma_lam_j <= 0.01
+    assert abs(held.lam_j - prior_lam) < 0.01  # the few central points barely move it off the prior
+    assert division_error(held.lam_j, lam_true(f_fr), f_fr) < division_error(free.lam_j, lam_true(f_fr), f_fr)

@@ -404,14 +404,20 @@ def estimate_keyframe_distortion(
     loss: str = "soft_l1",
     f_scale_px: float = 2.0,
     max_iterations: int = 100,
+    fixed: ArrayLike | None = None,
+    prior: tuple[ArrayLike, ArrayLike] | None = None,
+    noise_px: float = 0.3,
 ) -> KeyframeDistortion:
     """One lam per keyframe (or the curve's coefficients if `curve` is given) and one H per match.
 
     focals: (K,) current focal estimates (a nominal value is fine: only lam / f^2 is observed);
     centres: (2,) or (K, 2) distortion centres (principal points); lam0: (K,) starting values.
     Robust loss (soft_l1, f_scale_px pixels) against residual outliers in the matches. With `curve`,
-    lam_k = curve(f_k) and the curve object is left fitted. Levenberg-Marquardt with the analytic
-    Jacobian on block-sparse normal equations: O(points) per iteration, (8 pairs + K)^2 memory.
+    lam_k = curve(f_k) and the curve object is left fitted. Without a curve: `fixed` (K,) bool keeps
+    those keyframes at lam0; `prior` = (mean (K,), sigma (K,), inf = none) adds the Gaussian prior
+    (lam - mean) / sigma, weighted against the matches as if they had noise_px pixels of noise.
+    Levenberg-Marquardt with the analytic Jacobian on block-sparse normal equations: O(points) per
+    iteration, (8 pairs + K)^2 memory.
     """
     focals = np.asarray(focals, dtype=float).ravel()
     n_kf = len(focals)
@@ -442,21 +448,33 @@ def estimate_keyframe_distortion(
 
         p_init = c0
     else:
-        n_dist = n_kf
+        free = np.ones(n_kf, dtype=bool) if fixed is None else ~np.asarray(fixed, dtype=bool).ravel()
+        n_dist = int(free.sum())
+        selection = np.eye(n_kf)[:, free]
 
         def lams_of(p: Array) -> Array:
-            return p
+            lams = lam_init.copy()
+            lams[free] = p
+            return lams
 
-        p_init = lam_init
+        p_init = lam_init[free]
+    prior_rows = np.zeros(0, dtype=int)
+    if prior is not None:
+        if curve is not None:
+            raise ValueError("a prior on lam needs per-keyframe coefficients (no curve)")
+        prior_mean = np.asarray(prior[0], dtype=float).ravel()
+        prior_weight = noise_px / np.asarray(prior[1], dtype=float).ravel()
+        prior_rows = np.flatnonzero(free & np.isfinite(prior_mean) & (prior_weight > 0))
     H0 = [_initial_homography(a, b, lam_init[m.i], lam_init[m.j]) for m, (a, b) in zip(matches, norm)]
-    sizes = [4 * len(a) for a, _ in norm]
+    sizes = [4 * len(a) for a, _ in norm] + ([len(prior_rows)] if len(prior_rows) else [])
     offsets = np.concatenate([[0], np.cumsum(sizes)])
+    n_match_rows = int(offsets[len(matches)])
     n_par = n_dist + 8 * len(matches)
 
     def dlam_dp(p: Array) -> Array:
         """(n_kf, n_dist) derivative of the keyframe coefficients w.r.t. the distortion parameters."""
         if curve is None:
-            return np.eye(n_kf)
+            return selection
         shift = V @ p
         rho2 = (curve.half_diagonal / focals) ** 2
         return (-1.0 / ((1.0 + shift) ** 2 * rho2))[:, None] * V
@@ -477,11 +495,16 @@ def estimate_keyframe_distortion(
             res[rows], J_lam, J_D = _pair_jacobian(
                 a, b, lams[m.i], lams[m.j], H0[k], H, focals[m.i], focals[m.j]
             )
-            if curve is None:
-                d_cols, J_dist = np.array([m.i, m.j]), J_lam
-            else:  # chain rule through lam_k(curve coefficients)
-                d_cols, J_dist = np.arange(n_dist), J_lam[:, :1] * G[m.i] + J_lam[:, 1:] * G[m.j]
+            # chain rule through lam_k(parameters): selection of free keyframes, or the curve
+            d_cols = np.flatnonzero((G[m.i] != 0.0) | (G[m.j] != 0.0))
+            J_dist = (J_lam[:, :1] * G[m.i] + J_lam[:, 1:] * G[m.j])[:, d_cols]
             blocks.append((np.concatenate([d_cols, h_cols]), np.hstack([J_dist, J_D])))
+        if len(prior_rows):
+            res[n_match_rows:] = prior_weight[prior_rows] * (lams[prior_rows] - prior_mean[prior_rows])
+            if G is not None:
+                J_prior = prior_weight[prior_rows, None] * G[prior_rows]
+                p_cols = np.flatnonzero(np.any(J_prior != 0.0, axis=0))
+                blocks.append((p_cols, J_prior[:, p_cols]))
         return res, blocks
 
     x0 = np.concatenate([p_init, np.zeros(8 * len(matches))])
@@ -493,13 +516,22 @@ def estimate_keyframe_distortion(
     pair_rms = np.array(
         [np.sqrt(np.mean(res[offsets[k] : offsets[k + 1]] ** 2) * 2.0) for k in range(len(matches))]
     )
-    JtJ, _ = _normal_equations(blocks, offsets, res, np.ones_like(res), n_par)
-    cov = _covariance(JtJ, res)
+    # posterior covariance: data term scaled by the residual variance of the matches, prior exact
+    JtJ, _ = _normal_equations(blocks[: len(matches)], offsets, res, np.ones_like(res), n_par)
+    dof = max(n_match_rows - n_par, 1)
+    information = JtJ * (dof / max(float(res[:n_match_rows] @ res[:n_match_rows]), 1e-300))
+    if len(blocks) > len(matches):  # the prior block: rows noise_px / sigma_prior * dlam/dp
+        p_cols, J_prior = blocks[-1]
+        information[np.ix_(p_cols, p_cols)] += J_prior.T @ J_prior / noise_px**2
+    cov = np.linalg.pinv(information)
     if curve is None:
         seen = np.zeros(n_kf, dtype=bool)
         for m in matches:
             seen[[m.i, m.j]] = True
-        sigma = np.where(seen, np.sqrt(np.maximum(np.diag(cov)[:n_kf], 0.0)), np.inf)
+        seen[prior_rows] = True
+        sigma = np.zeros(n_kf)
+        sigma[free] = np.sqrt(np.maximum(np.diag(cov)[:n_dist], 0.0))
+        sigma = np.where(seen | ~free, sigma, np.inf)
     else:
         sigma = _curve_lambda_sigmas(cov[:n_dist, :n_dist], focals, curve, x[:n_dist])
         curve.coefficients = x[:n_dist].copy()  # the curve passed in is now fitted
@@ -524,7 +556,7 @@ def estimate_keyframe_distortion(
         lam=np.asarray(lams, dtype=float),
         sigma_lam=sigma,
         homographies=homographies,
-        rms=float(np.sqrt(np.mean(res**2) * 2.0)),
+        rms=float(np.sqrt(np.mean(res[:n_match_rows] ** 2) * 2.0)),
         pair_rms=pair_rms,
         rms_undistorted_model=float(np.sqrt(np.mean(zero**2) * 2.0)),
         curve_coefficients=None if curve is None else x[:n_dist].copy(),
@@ -604,12 +636,6 @@ def _robust_levenberg_marquardt(
     return _Solution(x, False, "iteration limit")
 
 
-def _covariance(JtJ: Array, res: Array) -> Array:
-    """Gauss-Newton covariance sigma^2 (J^T J)^+."""
-    dof = max(len(res) - JtJ.shape[0], 1)
-    return np.linalg.pinv(JtJ) * (float(res @ res) / dof)
-
-
 def _curve_lambda_sigmas(cov: Array, focals: Array, curve: DistortionVsFocal, coeffs: Array) -> Array:
     assert curve.f_ref is not None
     V = np.vander(curve.f_ref / focals, len(coeffs), increasing=True)
@@ -646,6 +672,45 @@ def estimate_pair_distortion(
     )
     return PairDistortion(
         float(out.lam[0]), float(out.lam[1]), out.homographies[0], out.rms, *map(float, out.sigma_lam)
+    )
+
+
+def estimate_frame_distortion(
+    pts_keyframe: ArrayLike,
+    pts_frame: ArrayLike,
+    lam_keyframe: float,
+    centre: ArrayLike,
+    f_keyframe: float,
+    f_frame: float,
+    lam_prior: float | None = None,
+    sigma_prior: float = float("inf"),
+    noise_px: float = 0.3,
+) -> PairDistortion:
+    """Per-frame route: the frame's own lam jointly with its homography to a keyframe whose lam is known.
+
+    For the node that holds the frame's inliers (distorted pixels): returns lam_i = lam_keyframe
+    (fixed), lam_j = the frame's lam and H between UNDISTORTED pixels (what eq. 8 and the per-frame K
+    need; a homography fitted to distorted points and corrected afterwards is biased, see
+    `undistorted_homography`). lam_prior / sigma_prior (e.g. DistortionVsFocal at the frame's predicted
+    f) regularise frames with few or poorly spread points. centre: (2,) or (2, 2).
+    """
+    c_i, c_j = _centre_pair(centre)
+    match = KeyframeMatch(0, 1, np.asarray(pts_keyframe, dtype=float), np.asarray(pts_frame, dtype=float))
+    start = lam_keyframe * (f_frame / f_keyframe) ** 2 if lam_prior is None else lam_prior
+    prior = None
+    if lam_prior is not None and np.isfinite(sigma_prior):
+        prior = (np.array([np.nan, lam_prior]), np.array([np.inf, sigma_prior]))
+    out = estimate_keyframe_distortion(
+        [match],
+        [f_keyframe, f_frame],
+        np.stack([c_i, c_j]),
+        lam0=np.array([lam_keyframe, start]),
+        fixed=np.array([True, False]),
+        prior=prior,
+        noise_px=noise_px,
+    )
+    return PairDistortion(
+        float(out.lam[0]), float(out.lam[1]), out.homographies[0], out.rms, 0.0, float(out.sigma_lam[1])
     )
 
 
