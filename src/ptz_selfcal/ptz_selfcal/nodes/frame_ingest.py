@@ -166,7 +166,9 @@ class FrameIngest(Node):
         self._newest_image_time: float | None = None
         self._pending: deque[_Pending] = deque()
         self._last_skipped_total = 0
-        self._decode_times: deque[float] = deque(maxlen=1000)  # seconds per conversion to working mono8
+        self._decode_times: deque[float] = deque(maxlen=1000)  # seconds per conversion to mono8
+        self._last_received: float | None = None  # stamp of the previous image received (s)
+        self._intervals: deque[float] = deque(maxlen=51)  # recent image stamp intervals (s)
 
         sensor = QoSProfile(
             history=HistoryPolicy.KEEP_ALL if p["queue_policy"] == "lossless" else HistoryPolicy.KEEP_LAST,
@@ -243,6 +245,7 @@ class FrameIngest(Node):
         if stamp_ns in self._recent_stamps:
             self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} was already ingested")
             return
+        self._note_interval(stamp_ns * 1e-9)
         start = time.perf_counter()
         try:
             frame = convert()
@@ -264,6 +267,18 @@ class FrameIngest(Node):
         self._newest_image_time = t
         self._pending.append(_Pending(frame, header, time.monotonic()))
         self._flush_pending()
+
+    def _note_interval(self, t: float) -> None:
+        """Estimate images that never reached this node (shed by a latest-wins queue, lost by a best-effort
+        link) from gaps in the stamps: a gap of n nominal frame intervals means n - 1 missing images."""
+        previous, self._last_received = self._last_received, t
+        if previous is None or t <= previous:
+            return
+        interval = t - previous
+        self._intervals.append(interval)
+        nominal = sorted(self._intervals)[len(self._intervals) // 2]
+        if len(self._intervals) >= 10 and interval > 1.5 * nominal:
+            self._counts["input_frames_missing_estimate"] += round(interval / nominal) - 1
 
     def _on_joints(self, msg: JointState) -> None:
         self._counts["encoder_messages"] += 1
