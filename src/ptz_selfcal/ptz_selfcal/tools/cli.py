@@ -39,12 +39,15 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from ptz_selfcal.tools.bagio import BagError
 
+    # The command modules raise ptz_selfcal.tools.cli.CliError; under `python -m` this file is
+    # __main__, a different module object, so catch the class of the importable module.
+    cli_error = importlib.import_module("ptz_selfcal.tools.cli").CliError
     parser = build_parser()
     args = parser.parse_args(argv)
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)
-    except (CliError, BagError) as exc:
+    except (cli_error, BagError) as exc:
         print(f"ptz-selfcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
