@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from ptz_selfcal.core import metrics
 from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
 from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation, rot_z
