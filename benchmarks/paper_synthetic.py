@@ -31,6 +31,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import multiprocessing as mp  # noqa: E402
 import platform  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
@@ -276,6 +277,72 @@ def target_checks(table: dict, timings: dict) -> str:
     return "\n".join(lines)
 
 
+DRIFT_METHODS = ("LM constant pp", "MLE constant pp", "MLE varying pp", "MAP varying pp")
+
+
+def run_drift(task: tuple[float, float, int]) -> dict:
+    """Section 5.3.1: the principal point drifts; MLE with constant / varying pp and MAP, from LM."""
+    drift, sigma, seed = task
+    seq = paper_sequence("A", sigma, seed, principal_point_drift=drift)
+    size, obs = seq.image_size, seq.observations()
+    prior = default_pp_prior(size, PP_PRIOR_SIGMA)
+    out: dict[str, dict] = {}
+    try:
+        lin = linear_selfcalibration(seq.H, size)
+        lm = lm_selfcalibration(seq.H, size, SQUARE_CONSTANT_PP, lin.K)
+    except SelfCalibrationError as exc:
+        return {m: {"flagged": True, "error": str(exc), **_errors(None, seq)} for m in DRIFT_METHODS}
+    runs = {
+        "LM constant pp": lambda: lm,
+        "MLE constant pp": lambda: bundle_adjust(obs, lm.K, lm.R, size, SQUARE_CONSTANT_PP),
+        "MLE varying pp": lambda: bundle_adjust(obs, lm.K, lm.R, size, SQUARE_VARYING_PP),
+        "MAP varying pp": lambda: bundle_adjust(
+            obs, lm.K, lm.R, size, SQUARE_VARYING_PP, pp_prior=prior, noise_sigma=sigma
+        ),
+    }
+    for name, solve in runs.items():
+        result, _, error = _timed(solve)
+        out[name] = {"flagged": result is None or not result.ok, "error": error, **_errors(result, seq)}
+    return out
+
+
+def format_drift(results: list[dict], drift: float, sigma: float) -> str:
+    lines = [
+        f"Section 5.3.1, drifting principal point: configuration A, sigma {sigma:g} px, principal point "
+        f"moving {drift:g} px over the sequence, {len(results)} runs (seeds 0..{len(results) - 1}), "
+        "all started from LM constant pp:",
+        f"  {'method':<16} {'f mean%':>8} {'f rms%':>7} {'pp rms':>7} {'rot rms°':>9} {'flagged':>7}",
+    ]
+    for name in DRIFT_METHODS:
+        rows = [r[name] for r in results if r[name]["f"] is not None]
+        f = np.concatenate([m["f"] for m in rows]) if rows else np.array([np.nan])
+        pp = np.concatenate([m["pp"] for m in rows]) if rows else np.array([np.nan])
+        rot = np.concatenate([m["rot"] for m in rows]) if rows else np.array([np.nan])
+        flagged = np.mean([r[name]["flagged"] for r in results])
+        f_rms, pp_rms, rot_rms = (np.sqrt(np.mean(x**2)) for x in (f, pp, rot))
+        lines.append(
+            f"  {name:<16} {np.mean(f):>+8.3f} {f_rms:>7.3f} {pp_rms:>7.2f} {rot_rms:>9.4f} "
+            f"{100 * flagged:>6.0f}%"
+        )
+    return "\n".join(lines)
+
+
+def _git_revision() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, timeout=10
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "src", "benchmarks/paper_synthetic.py"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+        return out.stdout.strip() + (" (+ uncommitted changes)" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=100, help="runs per configuration and noise level")
@@ -285,17 +352,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timing-sequences", type=int, default=None, help="sequences for the timing table")
     parser.add_argument("--timing-repeats", type=int, default=5, help="repeats of each timed solve")
     parser.add_argument(
+        "--drift-runs", type=int, default=None, help="runs of the 5.3.1 experiment (default 20)"
+    )
+    parser.add_argument("--drift", type=float, default=20.0, help="principal point drift (px) for 5.3.1")
+    parser.add_argument(
         "--write", type=Path, default=None, help=f"results file (default {RESULT_FILE} unless --quick)"
     )
     args = parser.parse_args(argv)
     runs = 5 if args.quick else args.runs
     tasks = [(c, s, args.seed + k) for c in CONFIGS for s in SIGMAS for k in range(runs)]
+    drift_sigma = 0.6  # figure 8's noise level
+    drift_tasks = [(args.drift, drift_sigma, k) for k in range(args.drift_runs or (3 if args.quick else 20))]
     start = time.perf_counter()
     if args.workers > 1:
         with mp.get_context("fork").Pool(args.workers) as pool:
             results = pool.map(run_one, tasks, chunksize=1)
+            drift_results = pool.map(run_drift, drift_tasks, chunksize=1)
     else:
         results = [run_one(t) for t in tasks]
+        drift_results = [run_drift(t) for t in drift_tasks]
     wall = time.perf_counter() - start
     table = summarise(results)
     n_timing = args.timing_sequences or (2 if args.quick else 10)
@@ -307,12 +382,14 @@ def main(argv: list[str] | None = None) -> int:
             "30 frames, 1000 points, 640x480, noise N(0, sigma^2) per axis; "
             f"MAP prior sigma_pp = {PP_PRIOR_SIGMA:g} px",
             f"{args.workers} worker process(es), BLAS single-threaded, python {platform.python_version()}, "
-            f"wall {wall:.0f} s",
+            f"wall {wall:.0f} s, code {_git_revision()}",
             "",
             format_table(table),
             format_timings(timings, n_timing, args.timing_repeats),
             "",
             target_checks(table, timings),
+            "",
+            format_drift(drift_results, args.drift, drift_sigma),
         ]
     )
     print(text)

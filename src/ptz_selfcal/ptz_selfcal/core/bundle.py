@@ -127,7 +127,7 @@ def _tangent_bases(X: Array) -> Array:
     return np.stack([b1, b2], axis=2)
 
 
-def initial_rays(obs: BundleObservations, K: Array, R: Array, n_rays: int) -> Array:
+def initial_rays(obs: BundleObservations | _PreparedObservations, K: Array, R: Array, n_rays: int) -> Array:
     """Unit rays by back-projection X = R_i^T K_i^-1 x through each frame, averaged (section 5.1)."""
     Kinv = np.linalg.inv(K)
     xh = np.column_stack([obs.xy, np.ones(len(obs.xy))])
