@@ -83,6 +83,7 @@ class Sequence:
     f_reference: float | None = None  # AutoStitch's focal length (real sets)
     source: str = ""
     fixed_focal: bool = False  # a fixed lens: photographs, not video (real sets)
+    distorted: bool = False  # radial distortion in the images (synthetic inputs)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -137,7 +138,10 @@ def render_sequence(name: str, spec: SynthSpec, n_frames: int, fps: float = FPS)
     ]
     K = np.array([state.K(i) for i in range(n_frames)])
     R = np.array([state.R(i) for i in range(n_frames)])
-    return Sequence(name, frames, np.arange(0, n_frames, STRIDE), K, R, source="core.render")
+    source = "core.render (in-process)"
+    return Sequence(
+        name, frames, np.arange(0, n_frames, STRIDE), K, R, source=source, distorted=spec.distortion > 0
+    )
 
 
 def load_real_set(name: str) -> Sequence:
@@ -233,7 +237,7 @@ class PhotoTracker:
     as HomographyTracker; every image is a keyframe."""
 
     def __init__(
-        self, n_features: int = 2000, ratio: float = 0.8, threshold: float = 2.0, min_inliers: int = 30
+        self, n_features: int = 2000, ratio: float = 0.8, threshold: float = 2.0, min_inliers: int = 20
     ):
         self._orb = cv2.ORB_create(nfeatures=n_features)
         self._ratio = ratio
@@ -568,9 +572,14 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
     """Frames one by one as the nodes run them: HomographyTracker -> CalibratorSession (the calibrator
     node's logic: IncrementalCalibrator, LM + keyframe MAP bundle adjustment), whose worker step runs
     inline after every frame with the node's default budget (so the timing holds all the work)."""
-    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput
+    from dataclasses import fields, replace
 
-    session = CalibratorSession()
+    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
+
+    config = SessionConfig()
+    if seq.distorted and "estimate_distortion" in {f.name for f in fields(config)}:
+        config = replace(config, estimate_distortion=True)  # issue 6's distortion path, where present
+    session = CalibratorSession(config)
     published: dict[int, tuple[Array, Array]] = {}
     w, h = seq.size
 
@@ -808,7 +817,10 @@ def synth_bag_sequence(name: str, spec: SynthSpec, n_frames: int, workdir: Path)
     subprocess.run(cmd, check=True)
     frames, K, R = read_synth_bag(bag)
     args = " ".join(cmd[4:]).replace(str(DATA / "panoramas") + "/", "").replace(str(workdir) + "/", "")
-    return Sequence(name, frames, np.arange(0, len(frames), STRIDE), K, R, source=f"ptz-selfcal synth {args}")
+    source = f"ptz-selfcal synth {args}"
+    return Sequence(
+        name, frames, np.arange(0, len(frames), STRIDE), K, R, source=source, distorted=spec.distortion > 0
+    )
 
 
 def read_synth_bag(bag: Path) -> tuple[list[np.ndarray], Array, Array]:
