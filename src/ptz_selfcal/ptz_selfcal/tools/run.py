@@ -71,6 +71,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=2.0,
         help="seconds to wait after the last frame for trailing outputs and final diagnostics",
     )
+    parser.add_argument(
+        "--image-topic", help="bag topic of the images (default: /ptz/image_raw[/compressed])"
+    )
+    parser.add_argument("--joints-topic", help="bag topic of the encoders (default: /ptz/joint_states)")
     parser.add_argument("--namespace", help="namespace of the nodes (default: a private one per run)")
     parser.add_argument("--record-frames", action="store_true", help="also record frame_in (working images)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many images (0: all)")
@@ -118,20 +122,44 @@ class RunStats:
         return self.calibrated / elapsed if elapsed > 0 else 0.0
 
 
-def _image_topic(reader: BagReader) -> tuple[str, str, int]:
+def _pick_topic(
+    reader: BagReader, wanted: str | None, defaults: tuple[str, ...], types: tuple[str, ...], what: str
+) -> tuple[str, str, int] | None:
+    """The bag topic to play as `what`: the one named on the command line, else a default name, else the
+    only non-ground-truth topic of a fitting type; None when there is none."""
     found = {t.name: t for t in reader.topics()}
-    candidates = [
-        found[n] for n in map(topics.bag_topic, (topics.IMAGE_COMPRESSED, topics.IMAGE_RAW)) if n in found
-    ]
+    if wanted:
+        name = topics.bag_topic(wanted)
+        if name not in found:
+            raise CliError(f"{reader.path}: no topic {name} (topics: {', '.join(found) or 'none'})")
+        if found[name].msgtype not in types:
+            raise CliError(f"{reader.path}: {name} is a {found[name].msgtype}, not a {' or '.join(types)}")
+        candidates = [found[name]]
+    else:
+        candidates = [found[n] for n in map(topics.bag_topic, defaults) if n in found]
+        if not candidates:
+            candidates = [t for t in found.values() if t.msgtype in types and "ground_truth" not in t.name]
+            if len(candidates) > 1:
+                names = ", ".join(t.name for t in candidates)
+                raise CliError(
+                    f"{reader.path}: several {what} topics ({names}): choose one with --{what}-topic"
+                )
     candidates = [t for t in candidates if t.count > 0] or candidates
     if not candidates:
-        names = ", ".join(found) or "none"
+        return None
+    best = max(candidates, key=lambda t: t.count)
+    return best.name, best.msgtype, best.count
+
+
+def _image_topic(reader: BagReader, wanted: str | None = None) -> tuple[str, str, int]:
+    picked = _pick_topic(reader, wanted, (topics.IMAGE_COMPRESSED, topics.IMAGE_RAW), _IMAGE_TYPES, "image")
+    if picked is None:
+        names = ", ".join(t.name for t in reader.topics()) or "none"
         raise CliError(
             f"{reader.path}: no {topics.bag_topic(topics.IMAGE_RAW)} or "
             f"{topics.bag_topic(topics.IMAGE_COMPRESSED)} topic (topics: {names})"
         )
-    best = max(candidates, key=lambda t: t.count)
-    return best.name, best.msgtype, best.count
+    return picked
 
 
 def run(args: argparse.Namespace) -> int:
@@ -145,7 +173,10 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.encoder_lookahead <= 3600:
         raise CliError("--encoder-lookahead must be in [0, 3600] s")
     with BagReader(args.in_bag) as reader:
-        image_topic, image_type, total = _image_topic(reader)
+        image_topic, image_type, total = _image_topic(reader, args.image_topic)
+        joints = _pick_topic(
+            reader, args.joints_topic, (topics.JOINT_STATES,), ("sensor_msgs/msg/JointState",), "joints"
+        )
         bag_topics = {t.name: t.msgtype for t in reader.topics()}
     if args.max_frames > 0:
         total = min(total, args.max_frames)
@@ -156,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="ptz_selfcal_run_") as tmp:
         params_file, namespace, _ = prepare(args.params, namespace, [], tmp)
         assert namespace is not None
-        input_kind = "compressed" if image_topic == topics.bag_topic(topics.IMAGE_COMPRESSED) else "raw"
+        input_kind = "compressed" if image_type == "sensor_msgs/msg/CompressedImage" else "raw"
         diag_remap = ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
         # Run-mode overrides (after the params file, so they win): lossless, reliable, the bag's image
         # topic, and outputs held until the next stage (and the recorder where it listens) is matched.
@@ -179,9 +210,9 @@ def run(args: argparse.Namespace) -> int:
         supervisor = Supervisor(specs, params_file, namespace, echo=not args.quiet, output=sys.stderr)
         writer = BagWriter(out)
         try:
-            stats = _Replay(
-                args, supervisor, writer, namespace, image_topic, image_type, total, bag_topics
-            ).run()
+            replay = _Replay(args, supervisor, writer, namespace, image_topic, image_type, total, bag_topics)
+            replay.encoder_topic = joints[0] if joints else None
+            stats = replay.run()
         finally:
             writer.close()
     # The summary is printed even with --quiet (eval and benchmarks read it).
@@ -245,7 +276,7 @@ class _Replay:
         self.sent_times: OrderedDict[int, float] = OrderedDict()  # image stamp -> when it was sent
         self.last_bag_time = 0
         self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
-        self.encoder_topic = topics.bag_topic(topics.JOINT_STATES)
+        self.encoder_topic: str | None = topics.bag_topic(topics.JOINT_STATES)
         self._lost_logged = 0
         self.diagnostics_seen: dict[str, float] = {}  # node name -> when its last diagnostics arrived
 
@@ -322,10 +353,14 @@ class _Replay:
         previous_term = signal.signal(signal.SIGTERM, on_term)
         try:
             image_pub = node.create_publisher(
-                msg_class(self.image_type), self._rel(self.image_topic), reliable_qos()
+                msg_class(self.image_type),
+                topics.IMAGE_COMPRESSED
+                if self.image_type == "sensor_msgs/msg/CompressedImage"
+                else topics.IMAGE_RAW,
+                reliable_qos(),
             )
             encoder_pub = None
-            if self.encoder_topic in self.bag_topics:
+            if self.encoder_topic is not None and self.encoder_topic in self.bag_topics:
                 encoder_pub = node.create_publisher(
                     msg_class(self.bag_topics[self.encoder_topic]), topics.JOINT_STATES, reliable_qos()
                 )
@@ -358,9 +393,6 @@ class _Replay:
         if interrupted.is_set():
             raise KeyboardInterrupt
         return self.stats
-
-    def _rel(self, bag_name: str) -> str:
-        return bag_name.lstrip("/")
 
     def _check_supervisor(self) -> None:
         self.supervisor.poll()
