@@ -190,9 +190,8 @@ class FrameIngest(Node):
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self.create_timer(0.02, self._flush_pending)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        cv2.utils.logging.setLogLevel(
-            cv2.utils.logging.LOG_LEVEL_ERROR
-        )  # OpenCV's own warnings about corrupt data: we count and log them ourselves
+        # OpenCV's own warnings about corrupt data would repeat per frame: we count and log them ourselves.
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
         self.get_logger().info(
             f"input={p['input']} ({p['sensor_reliability']}, {p['queue_policy']}), "
             f"working_width={self._working_width}, joints={names}, encoder offset "
