@@ -159,9 +159,21 @@ class _Child:
     reader: threading.Thread | None = None
 
 
+def _libc_prctl() -> Any:
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # not Linux/glibc: children are still stopped by stop()
+        return None
+
+
+# Resolved once in the parent: the child (between fork and exec, possibly with other threads in the
+# parent) only makes the call, it loads nothing.
+_PRCTL = _libc_prctl()
+
+
 def _set_pdeathsig() -> None:  # runs in the child between fork and exec
-    with contextlib.suppress(Exception):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    if _PRCTL is not None:
+        _PRCTL(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: SIGTERM when the supervisor dies
 
 
 class SupervisorError(Exception):
