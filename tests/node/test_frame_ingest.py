@@ -228,6 +228,10 @@ def test_good_frames_converted_bad_ones_counted_node_survives(ingest):
     t += 0.1
     h.raw.publish(image_msg(t, np.zeros((0, 0), np.uint8), "mono8", step=0, data=b""))
     t += 0.1
+    huge = image_msg(t, gray, "mono8", step=16384, data=gray.tobytes())  # claims 16k x 16k
+    huge.width = huge.height = 16384
+    h.raw.publish(huge)
+    t += 0.1
     # A good frame after all that, and one whose stamp no encoder sample will ever bracket.
     bgr = scene(8)
     h.raw.publish(image_msg(t, bgr, "bgr8"))
@@ -264,7 +268,8 @@ def test_good_frames_converted_bad_ones_counted_node_survives(ingest):
 
     assert h.spin(5.0, counted), h.diagnostics[-1:]
     d = h.diagnostics[-1]
-    assert d["frames_in"] == str(len(goods) + 1 + 6)
+    assert d["frames_in"] == str(len(goods) + 1 + 7)
+    assert d["skipped_too_large"] == "1"
     assert d["skipped_bad_step"] == "2"  # lying step, lying encoding
     assert d["skipped_unsupported_encoding"] == "1"
     assert d["skipped_undecodable"] == "2"
