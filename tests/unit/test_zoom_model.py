@@ -284,3 +284,16 @@ def test_fit_from_calibration_arrays_and_incremental_update():
     assert model.add_calibrations(zooms[:10], Ks[:10]) == 10 and model.sample_count == before + 10
     with pytest.raises(ValueError):
         model.add_calibrations(zooms[:3], Ks[:2])
+
+
+def test_uncertainty_is_unknown_rather_than_zero_without_redundancy():
+    two = ZoomModel()
+    two.add_sample(0.0, 1000.0, 640.0, 360.0)
+    two.add_sample(100.0, 2000.0, 640.0, 360.0)
+    p = two.predict(50.0)
+    assert np.isnan(p.sigma_f) and 1000.0 < p.K[0, 0] < 2000.0 and p.in_range
+    few = ZoomModel()
+    rng = np.random.default_rng(9)
+    for z in np.linspace(0.0, 1000.0, 6):
+        few.add_sample(z, float(f_true(z)) * (1.0 + 0.01 * rng.normal()), 640.0, 360.0)
+    assert few.sigma_f(500.0) > 0.0

@@ -242,7 +242,9 @@ class ZoomModel:
         constants: dict[str, float] = {}
         sigma: dict[str, Array] = {}
         slopes = (0.0, 0.0)
-        n_basis = min(n_bins, self.max_basis)
+        # keep one degree of freedom for the misfit once there are 3 bins (an interpolating spline
+        # would claim zero uncertainty)
+        n_basis = min(n_bins if n_bins < 3 else n_bins - 1, self.max_basis)
         for col, name in enumerate(QUANTITIES):
             y = mean[:, col]
             if n_bins == 1 or z.max() - z.min() <= 0.0:
@@ -258,9 +260,11 @@ class ZoomModel:
                 if name == "log_f":
                     d = spline.derivative()
                     slopes = (max(float(d(z.min())), 0.0), max(float(d(z.max())), 0.0))
-            dof = max(n_bins - min(n_basis, n_bins), 1)
-            misfit2 = float(np.sum(n * (y - fitted) ** 2) / np.sum(n)) * n_bins / dof if n_bins > 1 else 0.0
+            dof = n_bins - min(n_basis, n_bins)
+            misfit2 = float(np.sum(n * (y - fitted) ** 2) / np.sum(n)) * n_bins / dof if dof > 0 else 0.0
             sigma[name] = np.sqrt(se[:, col] ** 2 + misfit2)
+            if dof == 0 and not np.any(n > 1):
+                sigma[name] = np.full(n_bins, np.nan)  # no replicate and no redundancy: unknown
         return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma)
 
     def _fitted(self) -> _Fit:
