@@ -5,8 +5,9 @@ Division model (the eq. 32 family, in Fitzgibbon's "undistort = divide" form):
     x_u = c + (x_d - c) / (1 + lam * rho_d^2),    rho_d = |x_d - c| / f
 
 - lam is DIMENSIONLESS: it acts on the radius normalised by the focal length f (pixels), so one lam
-  describes the same angular distortion of the lens at any image size. The paper's pixel-unit kappa is
-  kappa = -lam / f^2 (eq. 32 with the roles of x_u and x_d exchanged, to first order).
+  describes the same angular distortion of the lens at any image size. The paper's pixel-unit kappa
+  (eq. 32, r_d = r_u / (1 - kappa r_u^2)) is kappa = lam / f^2 to first order, with the same sign
+  convention (negative = barrel); eq. 32 is the same quadratic with x_u and x_d exchanged.
 - lam < 0 is barrel distortion (the distorted image is compressed towards c), lam > 0 pin-cushion.
 - Undistortion is closed form (used per pixel by the renderer); distortion solves the quadratic
   lam * rho_u * rho_d^2 - rho_d + rho_u = 0 for the root that tends to rho_u as lam -> 0.
