@@ -227,3 +227,19 @@ def test_frame_to_frame_klt_option_drifts_more_than_the_warped_keyframe(texture)
     # Translational KLT chained frame to frame under zoom accumulates a bias the warped keyframe avoids.
     assert worst["frame"] < 2.0
     assert worst["warped"] < worst["frame"] / 3.0
+
+
+def test_relocalises_against_an_older_keyframe_within_a_few_frames(texture):
+    Hs = pan_zoom_sequence(20, zoom_step=0.04)  # ~2.1x zoom: several keyframes
+    cut = similarity(1.2, -1050.0, -200.0, 0.1)
+    back = [Hs[1]] * 5  # the camera returns to where it started (the last keyframe does not overlap)
+    sequence = [*Hs, cut, cut, *back]
+    results = run(HomographyTracker(), [view(texture, H) for H in sequence])
+    assert sum(r.state == TrackingState.NEW_KEYFRAME for r in results[:20]) >= 3
+    assert results[20].state == TrackingState.TRACKING_LOST
+    returned = [r.state for r in results[22:]]
+    assert TrackingState.RELOCALISED in returned[:3]
+    first = 22 + returned.index(TrackingState.RELOCALISED)
+    for i in range(first, len(sequence)):
+        assert results[i].reference_id == 0
+        assert grid_error(results[i].H_ref, true_full(Hs[0], sequence[i])).max() < 0.3

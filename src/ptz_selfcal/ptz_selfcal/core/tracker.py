@@ -88,7 +88,7 @@ class TrackerConfig:
     descriptor: str = "orb"  # re-matching/relocalisation descriptor: "orb" or "sift"
     descriptor_features: int = 500
     descriptor_ratio: float = 0.8
-    relocalise_candidates: int = 6  # keyframes tried per lost frame
+    relocalise_candidates: int = 3  # keyframes tried per lost frame (others on the next frames)
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
     repeat_threshold: float = 5.0  # re-warp and re-track when the prediction was off by more (full px)
     gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
@@ -523,17 +523,15 @@ class HomographyTracker:
     # ------------------------------------------------------------------ loss and relocalisation
     def _lose(self, image: np.ndarray, stamp: float | None, match_count: int) -> TrackResult:
         self._lost = True
-        return self._relocalise(image, stamp, match_count=match_count, just_lost=True)
+        return self._relocalise(image, stamp, match_count=match_count)
 
-    def _relocalise(
-        self, image: np.ndarray, stamp: float | None, match_count: int = 0, just_lost: bool = False
-    ) -> TrackResult:
+    def _relocalise(self, image: np.ndarray, stamp: float | None, match_count: int = 0) -> TrackResult:
         c = self.config
         corners = self._detect(image)
         if len(corners) < c.textured_min_corners:
             return self._result(TrackingState.TEXTURELESS, stamp, match_count)
         self._lost_frames += 1
-        for kf in self._relocalisation_order()[: c.relocalise_candidates]:
+        for kf in self._relocalisation_order():
             H_desc = self._descriptor_homography(kf, image)
             refined = None if H_desc is None else self._photometric_link(kf, image, corners, H_desc)
             if refined is not None:
@@ -555,10 +553,16 @@ class HomographyTracker:
         return self._result(TrackingState.TRACKING_LOST, stamp, match_count)
 
     def _relocalisation_order(self) -> list[Keyframe]:
-        """The last tracked keyframe first, then the others from the newest."""
-        order = [self._keyframes[self._keyframe_id]] if self._keyframe_id in self._keyframes else []
-        order += [kf for k, kf in reversed(self._keyframes.items()) if k != self._keyframe_id]
-        return order
+        """The last tracked keyframe, then the others newest first in a window that moves on every lost
+        frame: relocalise_candidates per frame bound the cost, and all keyframes get tried in turn."""
+        last = [self._keyframes[self._keyframe_id]] if self._keyframe_id in self._keyframes else []
+        others = [kf for k, kf in reversed(self._keyframes.items()) if k != self._keyframe_id]
+        count = max(self.config.relocalise_candidates - len(last), 0)
+        if not others or count == 0:
+            return last
+        start = (self._lost_frames - 1) * count % len(others)
+        window = (others[start:] + others[:start])[: min(count, len(others))]
+        return last + window
 
     # ------------------------------------------------------------------ helpers
     def _detect(self, image: np.ndarray) -> Points:
