@@ -182,6 +182,20 @@ def autostitch_focal(path: Path) -> float | None:
     return float(np.median(focals)) if focals else None
 
 
+def loop_closure_error(
+    last: Path, first: Path, H_first_to_last: np.ndarray, size: tuple[int, int], config: TrackerConfig
+) -> float:
+    """Pixels the first image's centre moves around first -> ... -> last -> first: the chained links
+    composed with a direct last -> first link (0 when the homographies close the loop)."""
+    closing = HomographyTracker(config)
+    closing.track(cv2.imread(str(last), cv2.IMREAD_GRAYSCALE), 1.0)
+    r = closing.track(cv2.imread(str(first), cv2.IMREAD_GRAYSCALE), 1.0)
+    if r.H_ref is None:
+        return float("nan")
+    centre = np.array([[(size[0] - 1) / 2, (size[1] - 1) / 2]])
+    return float(np.linalg.norm(apply_homography(r.H_ref @ H_first_to_last, centre) - centre))
+
+
 def run_rotation_set(folder: Path, config: TrackerConfig) -> dict:
     images = sorted(p for p in folder.glob("*.jpg"))
     tracker = HomographyTracker(config)
@@ -209,7 +223,10 @@ def run_rotation_set(folder: Path, config: TrackerConfig) -> dict:
         "states": states,
         "autostitch": autostitch_focal(folder / "autostitch_pano.txt"),
         "f": {},
+        "loop_px": float("nan"),
     }
+    if used and used[-1] == len(images) - 1 and len(images) >= 3 and out["autostitch"]:
+        out["loop_px"] = loop_closure_error(images[-1], images[0], H[-1], size, config)
     try:
         from ptz_selfcal.core.intrinsics import IntrinsicsModel, ParamMode
         from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
@@ -304,28 +321,23 @@ def format_report(
         "Real hand-held rotation sets (no zoom, no video: images in name order, so every image after the",
         "first is relocalised by descriptor matching + photometric refinement; SIFT descriptors, full",
         "resolution). f from lm_selfcalibration (f constant, square pixels, zero skew) on the H_ref of the",
-        "registered images; AutoStitch f from autostitch_pano.txt (median over images).",
+        "registered images; AutoStitch f from autostitch_pano.txt (median over images). 'loop px': how far",
+        "the first image's centre moves through the chained homographies first -> last and a direct",
+        "last -> first link (0 = the loop closes; these 360 degree sets end where they start). 'inl':",
+        "inliers / candidate correspondences of the link that registered each image; link rms in px.",
     ]
     rows = []
     for r in rot:
         auto = f"{r['autostitch']:.1f}" if r["autostitch"] else "none"
         row = [r["name"], str(r["images"]), str(r["registered"]), f"{r['inlier_ratio']:.2f}",
-               f"{r['inlier_ratio_min']:.2f}", f"{r['link_rms']:.2f}", auto]  # fmt: skip
+               f"{r['inlier_ratio_min']:.2f}", f"{r['link_rms']:.2f}", f"{r['loop_px']:.0f}",
+               auto]  # fmt: skip
         for label in ("pp known", "pp const"):
             f, ok, _ = r["f"].get(label, (float("nan"), False, ""))
             row.append(f"{f:.1f}{'' if ok else '*'}")
         rows.append(row)
-    header = [
-        "set",
-        "images",
-        "reg.",
-        "inl med",
-        "inl min",
-        "link rms",
-        "AutoStitch",
-        "f ppknown",
-        "f ppconst",
-    ]
+    header = ["set", "images", "reg.", "inl med", "inl min", "link rms", "loop px", "AutoStitch",
+              "f ppknown", "f ppconst"]  # fmt: skip
     lines += _table(header, rows, first=12, width=11)
     notes = sorted({msg for r in rot for _, ok, msg in r["f"].values() if not ok and msg})
     if notes:
@@ -349,7 +361,8 @@ def _pooled(all_stats: list[SequenceStats], name: str = "ALL") -> SequenceStats:
             getattr(p, name).extend(getattr(s, name))
         for k, v in s.states.items():
             p.states[k] = p.states.get(k, 0) + v
-    p.final_ref_rms = float(np.nanmax([s.final_ref_rms for s in all_stats]))
+    finals = [s.final_ref_rms for s in all_stats if np.isfinite(s.final_ref_rms)]
+    p.final_ref_rms = max(finals) if finals else float("nan")
     return p
 
 
