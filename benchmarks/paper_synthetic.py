@@ -261,9 +261,9 @@ def target_checks(table: dict, timings: dict) -> str:
             ("MLE constant pp", 400.0),
             ("MAP varying pp", 400.0),
         ]:
-            checks.append(
-                (f"{config} {method} time (wall) <= {limit:g} ms", timings[config, method][0], limit)
-            )
+            wall_ms, cpu_ms = timings[config, method]
+            checks.append((f"{config} {method} time, wall <= {limit:g} ms", wall_ms, limit))
+            checks.append((f"{config} {method} time, cpu  <= {limit:g} ms", cpu_ms, limit))
     lines = ["Targets (sigma = 0.5 px unless stated):"]
     for text, value, limit in checks:
         verdict = "n/a" if not np.isfinite(value) else ("met" if value <= limit else "MISSED")
@@ -327,13 +327,38 @@ def format_drift(results: list[dict], drift: float, sigma: float) -> str:
     return "\n".join(lines)
 
 
+CORE = "src/ptz_selfcal/ptz_selfcal/core/"
+DEPENDENCIES = [
+    f"{CORE}{name}.py"
+    for name in (
+        "bundle",
+        "synthetic",
+        "linear_selfcal",
+        "lm_selfcal",
+        "intrinsics",
+        "geometry",
+        "homography",
+        "degeneracy",
+        "metrics",
+    )
+] + ["benchmarks/paper_synthetic.py"]
+
+
 def _git_revision() -> str:
+    """Short commit of the checkout, and whether the files this benchmark runs differ from it."""
+    repo = Path(__file__).resolve().parents[1]
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, timeout=10
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=10,
         )
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "src", "benchmarks/paper_synthetic.py"],
+            ["git", "status", "--porcelain", "--", *DEPENDENCIES],
+            cwd=repo,
             capture_output=True,
             text=True,
             timeout=10,
