@@ -1,0 +1,373 @@
+"""The calibrator's online radial-distortion state: homographies on corrected coordinates (section 7).
+
+Section 7 of the paper shows that self-calibration on homographies of DISTORTED points over-estimates
+the focal length (and under-estimates the motion), and suggests "correct the homographies, then
+self-calibrate". The tracker's homography reference -> keyframe is a CHAIN of keyframe-to-keyframe
+homographies, each fitted to distorted points: every link absorbs part of the distortion into a
+projective error, and the errors compound along the chain. Undistorting a grid mapped through that
+chained homography (distortion_estimation.undistorted_homography) therefore does not recover the
+undistorted homography: on the issue-6 bag (1280x720, 12% corner shift at the wide end) it leaves a
+median 9 px transfer error against the truth, and self-calibration on it misses f by ~7%. Recomputing
+every LINK from its raw inlier correspondences after undistorting them, and chaining the corrected
+links from the reference, gives 0.7 px and f within 0.1% (benchmarks/distortion.py, first part).
+
+`LensCorrection` does exactly that, online and in bounded time:
+- `add_match(newer, older, pts_newer, pts_older)`: the tracker's KeyframeMatches (raw, distorted,
+  full-resolution inliers). They feed core/distortion_estimation.KeyframeDistortionEstimator (one
+  division coefficient per keyframe jointly with the pair homographies; the lam(f) curve) and, for each
+  keyframe, its best link to an older keyframe (most points) for the chain.
+- `set_keyframe(id, f, centre)`: the calibrator's current focal length / principal point of a keyframe.
+  Before any calibration a prior (nominal focal length) is good enough: the images constrain the
+  pixel-space coefficient kappa = lam / f^2 about the distortion centre, which does not depend on f;
+  f only places a keyframe on the lam(f) curve, refined as the calibration converges.
+- `update()` (worker thread, only when new matches arrived): re-estimate distortion, then recompute
+  the corrected homography reference -> keyframe of every live keyframe by chaining its corrected link
+  homographies (DLT + LM on undistorted inliers). Cost: one joint solve over at most `max_matches`
+  matches plus one small homography fit per live link; nothing per frame.
+- Per frame (`frame_homography`): the corrected H reference -> frame is the frame's short
+  keyframe -> frame homography (tracked on distorted points, corrected by a grid refit: frame and
+  keyframe are a few frames apart, so the distortion nearly cancels and the refit error is second
+  order) composed with the keyframe's corrected chain. O(1): one 8x8-grid refit.
+- `plumb_bob(K)`: D = [k1, k2, 0, 0, 0] of lam(f) at the frame's focal length for CameraInfo
+  (distortion.division_to_plumb_bob, consistent with K: OpenCV undistortion with (K, D) reproduces the
+  division model); cached by (lam, f) so a steady zoom costs a dictionary lookup.
+- `undistort_points(id, pts, centre)`: keyframe matches on corrected coordinates for the bundle
+  adjustment (section 5).
+
+Pure: numpy + the core modules, no rclpy. Not thread-safe by itself: `update` builds a new immutable
+`LensSnapshot` and swaps it in one assignment, so a frame thread may read `snapshot` concurrently.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ptz_selfcal.core.distortion import division_to_plumb_bob, division_undistort
+from ptz_selfcal.core.distortion_estimation import (
+    DistortionVsFocal,
+    KeyframeDistortionEstimator,
+    undistorted_homography,
+)
+from ptz_selfcal.core.geometry import normalise_homography
+from ptz_selfcal.core.homography import estimate_homography
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class _Link:
+    """Inliers between a keyframe and an older keyframe (raw distorted pixels)."""
+
+    parent: int
+    pts: Array  # in the keyframe
+    parent_pts: Array  # in the parent
+
+
+@dataclass(frozen=True)
+class LensSnapshot:
+    """Immutable distortion state for the frame thread (swapped atomically by `update`)."""
+
+    kappa: dict[int, float]  # keyframe -> lam / f^2 (pixel-space division coefficient)
+    centre: dict[int, Array]  # keyframe -> distortion centre used for it (principal point)
+    focal: dict[int, float]  # keyframe -> focal length the estimate was made at
+    H: dict[int, Array]  # keyframe -> corrected H reference -> keyframe (unit determinant)
+    curve: DistortionVsFocal
+    rms_px: float  # symmetric transfer error of the joint solve
+    rms_uncorrected_px: float  # the same with lam = 0
+
+    def lam_at(self, f: float) -> float:
+        """lam(f) from the curve (0.0 when not fitted)."""
+        if not self.curve.fitted() or not (f > 0.0):
+            return 0.0
+        lam = float(self.curve.predict(f))
+        return lam if math.isfinite(lam) else 0.0
+
+    def lam_of(self, keyframe_id: int, f: float) -> float:
+        """The keyframe's own estimate at focal length f (lam = kappa f^2), else the curve."""
+        kappa = self.kappa.get(int(keyframe_id))
+        return self.lam_at(f) if kappa is None else kappa * f * f
+
+
+@dataclass
+class LensCorrectionStats:
+    updates: int = 0
+    failures: int = 0
+    links: int = 0
+    chained: int = 0  # live keyframes with a corrected chain after the last update
+    last_update_ms: float = math.nan
+    messages: list[str] = field(default_factory=list)
+
+
+class LensCorrection:
+    """Online distortion state of the calibrator (see the module docstring)."""
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        nominal_focal: float,
+        max_matches: int = 24,
+        max_points_per_match: int = 120,
+        max_keyframes: int = 512,
+        min_matches: int = 2,
+        plumb_bob_cache: int = 512,
+        seed: int = 0,
+    ) -> None:
+        self.width, self.height = int(width), int(height)
+        self.nominal_focal = float(nominal_focal)
+        self.centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+        self.min_matches = int(min_matches)
+        self.max_keyframes = int(max_keyframes)
+        self.estimator = KeyframeDistortionEstimator(
+            width, height, max_matches=max_matches, max_points_per_match=max_points_per_match, seed=seed
+        )
+        self.reference_id: int | None = None
+        self._links: OrderedDict[int, _Link] = OrderedDict()
+        self._focal: dict[int, float] = {}
+        self._centre: dict[int, Array] = {}
+        self._H_chain: OrderedDict[int, Array] = OrderedDict()  # corrected chains (kept when retired)
+        self._H_raw: OrderedDict[int, Array] = OrderedDict()  # keyframe -> tracked H reference -> keyframe
+        self._new_matches = 0
+        self._plumb_bob: OrderedDict[tuple[float, float, float, float], tuple[float, float]] = OrderedDict()
+        self._plumb_bob_size = int(plumb_bob_cache)
+        self.snapshot: LensSnapshot | None = None
+        self.stats = LensCorrectionStats()
+
+    # ---- inputs ------------------------------------------------------------------------------------
+    def set_reference(self, keyframe_id: int) -> None:
+        """The keyframe whose pixels the homographies start from (H = I)."""
+        if self.reference_id != int(keyframe_id):
+            self.reference_id = int(keyframe_id)
+            self._H_chain.clear()
+
+    def add_keyframe(self, keyframe_id: int, H_raw: ArrayLike) -> None:
+        """A new keyframe's tracked homography reference -> keyframe (its NEW_KEYFRAME message)."""
+        H = np.asarray(H_raw, dtype=float).reshape(3, 3)
+        if not np.all(np.isfinite(H)):
+            return
+        kid = int(keyframe_id)
+        if self.reference_id is None:
+            self.set_reference(kid)
+        self._H_raw[kid] = H
+        self._H_raw.move_to_end(kid)
+        while len(self._H_raw) > self.max_keyframes:
+            self._H_raw.popitem(last=False)
+
+    def set_keyframe(self, keyframe_id: int, f: float, centre: ArrayLike | None = None) -> None:
+        """Current focal length (and principal point = distortion centre) of a keyframe."""
+        if not (math.isfinite(f) and f > 0.0):
+            return
+        kid = int(keyframe_id)
+        c = self.centre0 if centre is None else np.asarray(centre, dtype=float).reshape(2)
+        if not np.all(np.isfinite(c)):
+            c = self.centre0
+        self._focal[kid] = float(f)
+        self._centre[kid] = c
+        self.estimator.set_keyframe(kid, float(f), c)
+
+    def add_match(
+        self, keyframe_id: int, other_keyframe_id: int, pts: ArrayLike, other_pts: ArrayLike
+    ) -> bool:
+        """Raw inliers between a keyframe and an older one (KeyframeMatches); False if unusable."""
+        a = np.asarray(pts, dtype=float).reshape(-1, 2)
+        b = np.asarray(other_pts, dtype=float).reshape(-1, 2)
+        i, j = int(keyframe_id), int(other_keyframe_id)
+        if len(a) != len(b) or len(a) < 12 or i == j or not (np.isfinite(a).all() and np.isfinite(b).all()):
+            return False
+        try:
+            self.estimator.add_match(i, j, a, b)
+        except ValueError:
+            return False
+        # keyframes get their focal length from the caller; until then the nominal one
+        for kid in (i, j):
+            if kid not in self._focal:
+                self.set_keyframe(kid, self.nominal_focal, None)
+        # the chain link of the newer keyframe: the older partner with most points
+        child, parent, pc, pp = (i, j, a, b) if i > j else (j, i, b, a)
+        old = self._links.get(child)
+        if old is None or len(pc) > len(old.pts):
+            self._links[child] = _Link(parent, pc, pp)
+            self._links.move_to_end(child)
+            while len(self._links) > self.max_keyframes:
+                self._links.popitem(last=False)
+        self._new_matches += 1
+        return True
+
+    @property
+    def pending(self) -> int:
+        """Matches received since the last update."""
+        return self._new_matches
+
+    # ---- worker ------------------------------------------------------------------------------------
+    def update(self, force: bool = False) -> bool:
+        """Re-estimate distortion and the corrected keyframe chains; True when the snapshot changed."""
+        if self._new_matches == 0 and not force:
+            return False
+        start = time.perf_counter()
+        try:
+            result = self.estimator.solve(min_matches=self.min_matches)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.stats.failures += 1
+            self.stats.messages = [*self.stats.messages[-9:], f"distortion solve failed: {exc}"]
+            return False
+        if result is None:
+            return False
+        self._new_matches = 0
+        kappa: dict[int, float] = {}
+        for kid, f in self._focal.items():
+            lam = self.estimator.lam(kid)
+            if lam is not None and math.isfinite(lam):
+                kappa[kid] = lam / (f * f)
+        curve = DistortionVsFocal.from_dict(self.estimator.curve.to_dict())
+        snap = LensSnapshot(
+            kappa=kappa,
+            centre=dict(self._centre),
+            focal=dict(self._focal),
+            H={},
+            curve=curve,
+            rms_px=float(result.rms),
+            rms_uncorrected_px=float(result.rms_undistorted_model),
+        )
+        self._rechain(snap)
+        self.snapshot = LensSnapshot(
+            snap.kappa,
+            snap.centre,
+            snap.focal,
+            dict(self._H_chain),
+            curve,
+            snap.rms_px,
+            snap.rms_uncorrected_px,
+        )
+        self.stats.updates += 1
+        self.stats.links = len(self._links)
+        self.stats.last_update_ms = 1e3 * (time.perf_counter() - start)
+        return True
+
+    def _kappa_for(self, snap: LensSnapshot, kid: int) -> tuple[float, Array]:
+        kappa = snap.kappa.get(kid)
+        f = self._focal.get(kid, self.nominal_focal)
+        if kappa is None:
+            kappa = snap.lam_at(f) / (f * f)
+        return kappa, self._centre.get(kid, self.centre0)
+
+    def undistort(self, snap: LensSnapshot, kid: int, pts: Array) -> Array:
+        kappa, c = self._kappa_for(snap, kid)
+        if kappa == 0.0:
+            return pts
+        # division_undistort with lam on radius / f: lam = kappa f^2 for any f (use f = 1)
+        return division_undistort(pts, kappa, c, 1.0)
+
+    def _rechain(self, snap: LensSnapshot) -> None:
+        """Corrected H reference -> keyframe for every keyframe reachable through its links."""
+        ref = self.reference_id
+        if ref is None:
+            return
+        chain = self._H_chain
+        chain[ref] = np.eye(3)
+        chained = 0
+        for child in sorted(self._links):
+            link = self._links[child]
+            if child == ref:
+                continue
+            parent_H = chain.get(link.parent)
+            if parent_H is None:
+                continue
+            try:
+                src = self.undistort(snap, link.parent, link.parent_pts)
+                dst = self.undistort(snap, child, link.pts)
+                H_link = estimate_homography(src, dst)  # parent -> child, corrected pixels
+                H = normalise_homography(H_link @ parent_H)
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            if np.all(np.isfinite(H)):
+                chain[child] = H
+                chain.move_to_end(child)
+                chained += 1
+        while len(chain) > self.max_keyframes:
+            oldest = next(iter(chain))
+            if oldest == ref:
+                chain.move_to_end(oldest)
+                continue
+            chain.popitem(last=False)
+        self.stats.chained = chained
+
+    # ---- frame thread ------------------------------------------------------------------------------
+    def ready(self) -> bool:
+        return self.snapshot is not None
+
+    def keyframe_homography(self, keyframe_id: int) -> Array | None:
+        """Corrected H reference -> keyframe (None: not chained yet)."""
+        snap = self.snapshot
+        if snap is None:
+            return None
+        return snap.H.get(int(keyframe_id))
+
+    def frame_homography(
+        self, H_raw: ArrayLike, keyframe_id: int, f_frame: float | None = None
+    ) -> Array | None:
+        """Corrected H reference -> frame from the tracked one (None: no correction available yet).
+
+        The frame's short homography from its keyframe (tracked, distorted points) is corrected by a
+        grid refit, the rest is the keyframe's corrected chain. A keyframe not chained yet (its own
+        matches have not arrived: the NEW_KEYFRAME frame itself) is reached from the newest chained
+        keyframe instead. f_frame (optional) places the frame's end on the lam(f) curve; without it
+        the keyframe's coefficient is used at both ends (frames stay close to their keyframe in zoom).
+        """
+        snap = self.snapshot
+        if snap is None:
+            return None
+        kid = int(keyframe_id)
+        base = kid if (kid in snap.H and kid in self._H_raw) else None
+        if base is None:
+            base = next((k for k in reversed(self._H_raw) if k in snap.H and k != kid), None)
+        if base is None:
+            return None
+        H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[base])
+        kappa, c = self._kappa_for(snap, base)
+        if kappa != 0.0:
+            kappa_j = kappa
+            if f_frame is not None and math.isfinite(f_frame) and f_frame > 0 and snap.curve.fitted():
+                kappa_j = snap.lam_at(f_frame) / (f_frame * f_frame)
+            try:
+                H_local = undistorted_homography(
+                    H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
+                )
+            except (ValueError, np.linalg.LinAlgError):
+                return None
+        return normalise_homography(H_local @ snap.H[base])
+
+    def undistort_points(self, keyframe_id: int, pts: ArrayLike) -> Array:
+        """Keyframe points on corrected coordinates (identity before the first estimate)."""
+        p = np.asarray(pts, dtype=float).reshape(-1, 2)
+        snap = self.snapshot
+        return p if snap is None else self.undistort(snap, int(keyframe_id), p)
+
+    def plumb_bob(self, K: ArrayLike) -> Array:
+        """CameraInfo D = [k1, k2, 0, 0, 0] of lam(f) at K's focal length, about K's principal point."""
+        D = np.zeros(5)
+        snap = self.snapshot
+        K = np.asarray(K, dtype=float)
+        f = float(K[0, 0])
+        if snap is None or not (math.isfinite(f) and f > 0.0):
+            return D
+        lam = snap.lam_at(f)
+        if lam == 0.0:
+            return D
+        key = (round(lam, 6), round(f, 0), round(float(K[0, 2])), round(float(K[1, 2])))
+        cached = self._plumb_bob.get(key)
+        if cached is None:
+            try:
+                cached = division_to_plumb_bob(lam, K, self.width, self.height)
+            except ValueError:
+                return D
+            self._plumb_bob[key] = cached
+            while len(self._plumb_bob) > self._plumb_bob_size:
+                self._plumb_bob.popitem(last=False)
+        D[0], D[1] = cached
+        return D
