@@ -211,7 +211,8 @@ def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
     lines.append("")
     lines.append(
         f"2. Calibrator core flatness: {n} frames (no DDS), keyframe every {keyframe_every} frames, "
-        f"{session.counters['solves']} solves, {elapsed:.0f} s"
+        f"{session.counters['solves']} solves, {elapsed:.0f} s; times are thread CPU time (other load on "
+        "the machine does not distort the ratio)"
     )
     lines.append(
         f"   {'mean ms/frame':<44} {'1000-2000':>10} {f'{n - 1000}-{n}':>11} {'ratio':>7}  ok (<= 1.2)"

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from ptz_selfcal.tools import evaluate
+
 PTZ = [sys.executable, "-m", "ptz_selfcal.tools.cli"]
 PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
 DOMAIN = 160
@@ -79,6 +81,18 @@ def test_eval_writes_report_plots_and_table(short_bag: Path, tmp_path: Path) -> 
     second = json.loads((again / "report.json").read_text())
     assert second["coverage"] == 1.0
     assert second["metrics"]["focal_error"] == report["metrics"]["focal_error"]
+
+    # a bag without ground truth (a real camera): rotations against the encoders passed through
+    data = evaluate.read_output_bag(out / "output_bag")
+    data.gt_camera_info.clear()
+    data.gt_joint_states.clear()
+    data.image_stamps = evaluate.read_image_stamps(short_bag)
+    encoders, _ = evaluate.evaluate(data)
+    assert encoders["truth"] == {"intrinsics": "none", "rotations": "encoders"}
+    assert encoders["coverage"] == 1.0
+    assert "focal_error" not in encoders["metrics"]
+    # encoders lag the images (synth's encoder model) and are noisy: looser than against the truth
+    assert encoders["metrics"]["rotation_error_deg"]["after_warmup"]["median"] < 2.0
 
 
 def test_eval_refuses_a_missing_bag(tmp_path: Path) -> None:
