@@ -170,8 +170,10 @@ class Feeder:
         self.homographies: dict[int, object] = {}
         self.diagnostics: dict[str, dict[str, str]] = {}  # node name -> last counters
         self.sent: dict[int, float] = {}  # stamp ns -> monotonic send time
-        self.node.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info, reliable_qos())
-        self.node.create_subscription(
+        self.info_sub = self.node.create_subscription(
+            CameraInfo, topics.CAMERA_INFO, self._on_info, reliable_qos()
+        )
+        self.frame_sub = self.node.create_subscription(
             FrameCalibration, topics.FRAME_CALIBRATION, self._on_frame, reliable_qos()
         )
         self.listens_to_homographies = homographies
@@ -464,3 +466,66 @@ def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int 
         before = after
     results["_log"] = {"frames": len(ls.log), "stamps": [s.stamp_ns for s in ls.log]}
     return results
+
+
+def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps: float = 60.0,
+                      width: int = 1920, height: int = 1080, distinct: int = 24) -> dict:  # fmt: skip
+    """Publish JPEG frames of width x height at `fps` (best effort, like a camera driver) with encoders for
+    `seconds`; returns what came out: counts, latencies (send -> CameraInfo), RSS samples per node."""
+    from sensor_msgs.msg import CompressedImage
+
+    fw = f_wide_for(width)
+    views = sweep(distinct, width, fw, pan_deg=3.0, tilt_deg=1.0, zoom_max=1.1)
+    msgs = []
+    for v in views:
+        msg = CompressedImage()
+        msg.header.frame_id = "ptz_camera"
+        msg.format = "jpeg"
+        msg.data = cv2.imencode(".jpg", render(v, width, height), [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+        msgs.append(msg)
+    rss: dict[str, list[tuple[float, float]]] = {name: [] for name in pids}
+    sent: list[int] = []
+    start = time.monotonic()
+    next_rss = start
+    k = 0
+    while True:
+        now = time.monotonic()
+        if now - start >= seconds:
+            break
+        due = start + k / fps
+        if now >= due:
+            t = T0 + k / fps
+            v = views[k % distinct]
+            msg = msgs[k % distinct]
+            msg.header.stamp = stamp_of(t)
+            feeder.send_encoders(t, (v.pan, v.tilt, v.zoom))
+            feeder.compressed.publish(msg)
+            ns = ns_of(msg.header.stamp)
+            feeder.sent[ns] = time.monotonic()
+            sent.append(ns)
+            k += 1
+            if time.monotonic() - due > 1.0:  # the publisher itself fell behind: say so, do not burst
+                start += time.monotonic() - due
+        if now >= next_rss:
+            for name, pid in pids.items():
+                rss[name].append((now - start, rss_mb(pid)))
+            next_rss = now + 0.25
+        feeder.executor.spin_once(timeout_sec=max(0.0, min(0.002, due - time.monotonic())))
+    elapsed = time.monotonic() - start
+    feeder.spin(3.0)  # the last frames in flight
+    latencies = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in sent if ns in feeder.info_arrival]
+    third = max(1, len(sent) // 3)
+    early = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in sent[:third] if ns in feeder.info_arrival]
+    late = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in sent[-third:] if ns in feeder.info_arrival]
+    return {
+        "sent": len(sent),
+        "elapsed": elapsed,
+        "rate": len(sent) / elapsed,
+        "calibrated": sum(1 for ns in sent if ns in feeder.infos),
+        "duplicates": sum(1 for ns in sent if len(feeder.infos.get(ns, [])) > 1),
+        "unknown": sum(1 for ns in feeder.infos if ns not in feeder.sent),
+        "latencies": latencies,
+        "early_latencies": early,
+        "late_latencies": late,
+        "rss": rss,
+    }
