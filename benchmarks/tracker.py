@@ -10,8 +10,8 @@
 3. The real hand-held rotation sets (no zoom): inlier ratios and the constant focal length that the
    calibration core (lm_selfcalibration) gets from the tracker's homographies, next to AutoStitch.
 
-Run: ros2_ws/venv/bin/python benchmarks/tracker.py [--quick]; the table also goes to
-benchmarks/results/tracker.txt.
+Run: ros2_ws/venv/bin/python benchmarks/tracker.py [--quick] [--cache DIR]; the table also goes to
+benchmarks/results/tracker.txt (not with --quick or --no-write).
 """
 
 from __future__ import annotations
@@ -76,6 +76,23 @@ def make_sequence(path: Path, frames: int, seed: int) -> Sequence:
         Ks.append(K)
         Rs.append(R)
     return Sequence(path.stem, jpegs, Ks, Rs)
+
+
+def cached_sequence(path: Path, frames: int, seed: int, cache: Path | None) -> Sequence:
+    """make_sequence, stored as .npz under `cache` (JPEG bytes, K, R) when a directory is given."""
+    if cache is None:
+        return make_sequence(path, frames, seed)
+    file = cache / f"{path.stem}_{frames}_{seed}.npz"
+    if file.exists():
+        data = np.load(file, allow_pickle=False)
+        jpegs = [data["jpeg"][a:b].tobytes() for a, b in zip(data["offsets"][:-1], data["offsets"][1:])]
+        return Sequence(path.stem, jpegs, list(data["K"]), list(data["R"]))
+    seq = make_sequence(path, frames, seed)
+    cache.mkdir(parents=True, exist_ok=True)
+    offsets = np.cumsum([0] + [len(j) for j in seq.jpegs])
+    jpeg = np.frombuffer(b"".join(seq.jpegs), np.uint8)
+    np.savez(file, jpeg=jpeg, offsets=offsets, K=np.array(seq.K), R=np.array(seq.R))
+    return seq
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -371,6 +388,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="2 panoramas x 100 frames")
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=3, help="timing passes; per-frame minimum is kept")
+    parser.add_argument(
+        "--cache", type=Path, help="directory to keep rendered sequences in (re-runs skip rendering)"
+    )
     parser.add_argument("--no-write", action="store_true", help="do not write benchmarks/results/tracker.txt")
     args = parser.parse_args()
     cv2.setNumThreads(1)
@@ -384,7 +404,7 @@ def main() -> None:
             print(f"skip {name}: not found", file=sys.stderr)
             continue
         t0 = time.perf_counter()
-        seq = make_sequence(path, frames, seed=k)
+        seq = cached_sequence(path, frames, k, args.cache)
         t1 = time.perf_counter()
         all_stats.append(run_sequence(seq, config, args.repeats))
         # The brief's baseline, classic frame-to-frame KLT, on the same frames (accuracy only).
@@ -402,7 +422,7 @@ def main() -> None:
                                                               descriptor_features=2000)))  # fmt: skip
     report = format_report(all_stats, rot, frames, config, args.repeats, baselines)
     print(report)
-    if not args.no_write:
+    if not (args.no_write or args.quick):
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         RESULTS.write_text(report + "\n")
 
