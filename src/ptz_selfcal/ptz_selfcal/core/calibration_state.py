@@ -29,7 +29,6 @@ directory, fsync, os.replace, directory fsync. A corrupt or unreadable file is r
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import logging
 import math
@@ -47,12 +46,6 @@ import yaml
 from numpy.typing import NDArray
 
 from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
-from ptz_selfcal.core.distortion import division_to_plumb_bob, division_undistort
-from ptz_selfcal.core.distortion_estimation import (
-    DistortionVsFocal,
-    KeyframeDistortionEstimator,
-    undistorted_homography,
-)
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
 from ptz_selfcal.core.incremental import (
     CalibrationState,
@@ -193,12 +186,6 @@ class SessionConfig:
     # solve of t seconds the next waits max(min_solve_period_s, t (1 - duty) / duty); 0 = no limit
     min_solve_period_s: float = 0.0
     max_solve_duty: float = 1.0
-    # radial distortion (issue 6): division model per keyframe from the keyframe matches
-    # (core/distortion_estimation.KeyframeDistortionEstimator) and its curve lam(f); homographies and
-    # the bundle adjustment's points are corrected before self-calibration, CameraInfo carries the
-    # plumb_bob fit of the frame's lam(f)
-    estimate_distortion: bool = False
-    distortion_min_matches: int = 3
 
     def nominal_focal(self, width: int) -> float:
         if self.nominal_focal_px > 0.0:
@@ -234,8 +221,6 @@ class KeyframeBundleSolver:
         self.matches = matches
         self.reference_keyframe_id: int | None = None
         self.rotations: dict[Any, Array] = {}  # keyframe id -> R relative to the reference (last solve)
-        # (keyframe id, points, K) -> points on undistorted coordinates (None: no correction)
-        self.point_corrector: Any = None
         self.last_method = ""
         self.last_message = ""
 
@@ -293,9 +278,6 @@ class KeyframeBundleSolver:
             if len(pa) > limit:
                 keep = np.sort(rng.choice(len(pa), limit, replace=False))
                 pa, pb = pa[keep], pb[keep]
-            if self.point_corrector is not None:
-                pa = self.point_corrector(m.keyframe_id, pa, lm.K[a])
-                pb = self.point_corrector(m.other_keyframe_id, pb, lm.K[b])
             pairs.append((a, b, pa, pb))
         if not pairs:
             return None
@@ -353,21 +335,6 @@ class _PendingKeyframe:
 
 
 @dataclass
-class _DistortionSnapshot:
-    """Immutable distortion state for the frame thread: per-keyframe lam and the lam(f) curve."""
-
-    lam: dict[int, float]
-    curve: DistortionVsFocal
-
-    def at_focal(self, f: float) -> float:
-        return float(self.curve.predict(f)) if self.curve.fitted() else 0.0
-
-    def of_keyframe(self, keyframe_id: int | None, f: float) -> float:
-        lam = self.lam.get(keyframe_id) if keyframe_id is not None else None
-        return self.at_focal(f) if lam is None else lam
-
-
-@dataclass
 class _Snapshot:
     """Immutable view of the calibration for the frame thread."""
 
@@ -418,13 +385,7 @@ class CalibratorSession:
         self.keyframe_zoom: dict[int, float] = {}
         self._sampled_keyframes: set[int] = set()
         self._neighbour: dict[int, tuple[int, Array | None]] = {}  # keyframe -> (linked keyframe, H)
-        self.distortion: KeyframeDistortionEstimator | None = None
-        self._prior_cal: IncrementalCalibrator | None = None
-        self._distortion: _DistortionSnapshot | None = None
-        self._raw_H: dict[int, Array] = {}  # calibrator keyframe -> H as tracked (distorted points)
-        self._new_distortion_matches = 0
-        self._plumb_bob_cache: OrderedDict[tuple[float, float], tuple[float, float]] = OrderedDict()
-        self.solver.point_corrector = self._undistort_points
+        self.distortion_model: Any = None  # K -> plumb_bob D (None: distortion not estimated)
         self._keyframe_H: dict[int, Array] = {}  # keyframe -> H reference -> keyframe (as tracked)
         self._seen_keyframes: set[int] = set()
         self.last_good: FrameOutput | None = None
@@ -504,7 +465,6 @@ class CalibratorSession:
         snap = self._snapshot
         if snap is not None and snap.calibrated:
             try:
-                H = self._corrected(H, snap, None)
                 K, R, sigma_f = self._frame_intrinsics(snap, H, kid)
                 if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
                     return self._calibrated_output(snap, frame, K, R, sigma_f)
@@ -552,8 +512,6 @@ class CalibratorSession:
         solved = snap.keyframes.get(kid)
         if solved is None:
             return None
-        if self._distortion is not None:  # the links' homographies are of distorted points
-            return solved
         H_kf = self._keyframe_H.get(keyframe_id)
         if H_kf is None or any(h is None for h in chain):  # links without their homography
             return solved
@@ -565,113 +523,6 @@ class CalibratorSession:
             K = K_next
         return H_kf, K, R
 
-    # ---- distortion (issue 6) ----------------------------------------------------------------------
-    def _prior_intrinsics(self, H: Array) -> Array:
-        """K of a frame from the NOMINAL reference K and its tracked homography.
-
-        Distortion is estimated and applied in this fixed frame of reference (only lam / f^2 is
-        observed, so any consistent focal length will do), never with the calibrator's estimates:
-        that would feed distortion errors back into the calibration and vice versa.
-        """
-        if self._prior_cal is None:
-            self._prior_cal = self._new_calibrator(prior_only=True)
-        return self._prior_cal.frame_intrinsics(H)[0]
-
-    def _corrected(self, H: Array, snap: _Snapshot | None, keyframe_id: int | None) -> Array:
-        """H reference -> frame on undistorted coordinates (grid refit), H itself without distortion."""
-        del snap
-        dist = self._distortion
-        if dist is None or self.image_size is None:
-            return H
-        K0 = self._prior_intrinsics(np.eye(3))
-        Kj = self._prior_intrinsics(H)
-        lam_ref = dist.of_keyframe(self.solver.reference_keyframe_id, K0[0, 0])
-        lam_j = dist.of_keyframe(keyframe_id, Kj[0, 0])
-        if lam_ref == 0.0 and lam_j == 0.0:
-            return H
-        Hc = undistorted_homography(
-            H, lam_ref, lam_j, K0[:2, 2], Kj[:2, 2], K0[0, 0], Kj[0, 0], *self.image_size, count=8
-        )
-        return Hc / np.cbrt(np.linalg.det(Hc))
-
-    def _frame_distortion(self, K: Array, H: Array | None = None) -> Array:
-        """plumb_bob D = [k1, k2, 0, 0, 0] of the frame's lam (curve, in the nominal frame) at its K."""
-        D = np.zeros(5)
-        dist = self._distortion
-        if dist is None or self.image_size is None or H is None:
-            return D
-        try:
-            f_prior = float(self._prior_intrinsics(H)[0, 0])
-        except (SelfCalibrationError, ValueError, np.linalg.LinAlgError):
-            return D
-        lam = dist.at_focal(f_prior) * (float(K[0, 0]) / f_prior) ** 2  # same kappa = lam / f^2
-        if lam == 0.0 or not math.isfinite(lam):
-            return D
-        key = (round(lam, 7), round(float(K[0, 0]), 0))
-        cached = self._plumb_bob_cache.get(key)
-        if cached is None:
-            try:
-                cached = division_to_plumb_bob(lam, K, *self.image_size)
-            except ValueError:
-                return D
-            self._plumb_bob_cache[key] = cached
-            if len(self._plumb_bob_cache) > 512:
-                self._plumb_bob_cache.popitem(last=False)
-        D[0], D[1] = cached
-        return D
-
-    def _undistort_points(self, keyframe_id: Any, points: Array, K: Array) -> Array:
-        """Keyframe match points on undistorted coordinates (for the bundle adjustment)."""
-        dist = self._distortion
-        if dist is None:
-            return points
-        H_raw = self._keyframe_H.get(int(keyframe_id))
-        if keyframe_id == self.solver.reference_keyframe_id:
-            H_raw = np.eye(3)
-        if H_raw is None:
-            return points
-        Kp = self._prior_intrinsics(H_raw)
-        lam = dist.of_keyframe(keyframe_id, float(Kp[0, 0]))
-        return points if lam == 0.0 else division_undistort(points, lam, Kp[:2, 2], float(Kp[0, 0]))
-
-    def _update_distortion(self, calibrator: IncrementalCalibrator) -> bool:
-        """Worker: feed focal lengths, re-estimate distortion, correct the keyframe homographies."""
-        estimator = self.distortion
-        if estimator is None or self._new_distortion_matches < 1:
-            return False
-        K_ref = self._prior_intrinsics(np.eye(3))
-        ref = self.solver.reference_keyframe_id
-        if ref is not None:
-            estimator.set_keyframe(ref, K_ref[0, 0], K_ref[:2, 2])
-        for kid, H_raw in self._keyframe_H.items():
-            with contextlib.suppress(SelfCalibrationError, ValueError, np.linalg.LinAlgError):
-                K = self._prior_intrinsics(H_raw)
-                estimator.set_keyframe(kid, K[0, 0], K[:2, 2])
-        try:
-            result = estimator.solve(min_matches=self.config.distortion_min_matches)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            self._warn(f"distortion estimation failed: {exc}")
-            return False
-        self._new_distortion_matches = 0
-        if result is None:
-            return False
-        lam = {}
-        for kid in set(self._keyframe_H) | ({ref} if ref is not None else set()):
-            value = estimator.lam(kid)
-            if value is not None and math.isfinite(value):
-                lam[int(kid)] = float(value)
-        self._distortion = _DistortionSnapshot(lam, copy.deepcopy(estimator.curve))
-        self.counters["distortion_solves"] = self.counters.get("distortion_solves", 0) + 1
-        # the calibrator's keyframe homographies, re-derived from the tracked ones on corrected points
-        snap_like = _Snapshot(calibrator, calibrator.calibrated, "", "", math.nan, 0)
-        for kf in calibrator.keyframes:
-            raw = self._raw_H.get(int(kf.keyframe_id))
-            if raw is None:
-                continue
-            with contextlib.suppress(ValueError, np.linalg.LinAlgError, SelfCalibrationError):
-                kf.H = self._corrected(raw, snap_like, int(kf.keyframe_id))
-        return True
-
     def _calibrated_output(
         self, snap: _Snapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float
     ) -> FrameOutput:
@@ -679,7 +530,7 @@ class CalibratorSession:
         out = FrameOutput(
             status=status,
             K=np.asarray(K, dtype=float),
-            D=self._frame_distortion(np.asarray(K, dtype=float), frame.H),
+            D=self._distortion_of(np.asarray(K, dtype=float)),
             R=np.asarray(R, dtype=float) if np.all(np.isfinite(R)) else None,
             sigma_f=float(sigma_f),
             sigma_cx=snap.sigma_pp[0],
@@ -790,6 +641,20 @@ class CalibratorSession:
             source="zoom_model",
         )
 
+    def _distortion_of(self, K: Array) -> Array:
+        """plumb_bob D of a calibrated frame: from `distortion_model` (e.g. core/lens_correction's
+        SessionLensHook.distortion) when one is plugged in, else zeros (not estimated)."""
+        model = self.distortion_model
+        if model is None:
+            return np.zeros(5)
+        try:
+            D = np.asarray(model(K), dtype=float).ravel()
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+            return np.zeros(5)
+        out = np.zeros(5)
+        out[: min(5, D.size)] = D[:5]
+        return out if np.all(np.isfinite(out)) else np.zeros(5)
+
     # ---- keyframe matches (frame thread queues, worker applies) ------------------------------------
     def add_keyframe_matches(
         self,
@@ -832,17 +697,9 @@ class CalibratorSession:
                 return False
             if self._reset_requested:
                 self._do_reset()
-            if self.config.estimate_distortion and self.distortion is None:
-                self.distortion = KeyframeDistortionEstimator(*self.image_size)
             while self._pending_matches:
                 m = self._pending_matches.popleft()
                 self.matches[(m.keyframe_id, m.other_keyframe_id)] = m
-                if self.distortion is not None:
-                    with contextlib.suppress(ValueError):
-                        self.distortion.add_match(
-                            m.keyframe_id, m.other_keyframe_id, m.points, m.other_points
-                        )
-                        self._new_distortion_matches += 1
                 while len(self.matches) > self.config.max_match_pairs:
                     self.matches.popitem(last=False)
             if self.calibrator is None:
@@ -851,12 +708,6 @@ class CalibratorSession:
             added = 0
             solved = False
             start = time.perf_counter()
-            if self.distortion is not None and self._distortion is None:
-                # self-calibration on distorted homographies goes astray (section 7): keyframes wait
-                # until the distortion has been estimated once from their matches
-                self._update_distortion(calibrator)
-                if self._distortion is None:
-                    return False
             while self._pending:
                 kf = self._pending.popleft()
                 if np.allclose(kf.H, np.eye(3), atol=1e-9):
@@ -865,14 +716,8 @@ class CalibratorSession:
                     continue
                 was_calibrated = calibrator.calibrated
                 before = calibrator.last_solve
-                self._raw_H[kf.keyframe_id] = kf.H
-                H_add = kf.H
-                if self._distortion is not None:
-                    snap_like = _Snapshot(calibrator, calibrator.calibrated, "", "", math.nan, 0)
-                    with contextlib.suppress(ValueError, np.linalg.LinAlgError, SelfCalibrationError):
-                        H_add = self._corrected(kf.H, snap_like, kf.keyframe_id)
                 try:
-                    calibrator.add_keyframe(kf.keyframe_id, H_add, kf.stamp)
+                    calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp)
                 except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
                     self.counters["calibrator_errors"] += 1
                     self._warn(f"keyframe {kf.keyframe_id} rejected: {exc}")
@@ -890,8 +735,6 @@ class CalibratorSession:
                 self._needs_refinement = True
             due = time.monotonic() >= self._next_solve
             if calibrator.calibrated and self._needs_refinement and remaining > 0.0 and not solved and due:
-                if self._update_distortion(calibrator):
-                    added += 1  # corrected homographies: publish them with the next snapshot
                 before = calibrator.last_solve
                 t0 = time.perf_counter()
                 try:
@@ -914,7 +757,6 @@ class CalibratorSession:
                 if self.solver.reference_keyframe_id is not None:
                     live.add(int(self.solver.reference_keyframe_id))
                 self.keyframe_zoom = {k: v for k, v in self.keyframe_zoom.items() if k in live}
-                self._raw_H = {k: v for k, v in self._raw_H.items() if k in live}
                 self._sampled_keyframes &= live
                 self.solver.rotations = {k: v for k, v in self.solver.rotations.items() if k in live}
             if added or solved or self._snapshot is None:
@@ -926,7 +768,7 @@ class CalibratorSession:
     _needs_refinement = False
     _next_solve = 0.0
 
-    def _new_calibrator(self, prior_only: bool = False) -> IncrementalCalibrator:
+    def _new_calibrator(self) -> IncrementalCalibrator:
         assert self.image_size is not None
         width, height = self.image_size
         f = self.config.nominal_focal(width)
@@ -934,7 +776,7 @@ class CalibratorSession:
         zoom = (
             self.keyframe_zoom.get(self.solver.reference_keyframe_id, math.nan) if self.solver else math.nan
         )
-        if self._zoom_ready and math.isfinite(zoom) and not prior_only:
+        if self._zoom_ready and math.isfinite(zoom):
             with contextlib.suppress(ZoomModelError, ValueError):
                 prior = self.zoom_model.predict(zoom).K
         return IncrementalCalibrator(
@@ -992,7 +834,7 @@ class CalibratorSession:
             if kid in self._sampled_keyframes or kf.K is None or not math.isfinite(zoom):
                 continue
             K = kf.K
-            k1, k2 = self._frame_distortion(K, self._raw_H.get(kid))[:2]
+            k1, k2 = self._distortion_of(K)[:2]
             if self.zoom_model.add_sample(zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2):
                 self._sampled_keyframes.add(kid)
                 self.counters["zoom_model_samples"] += 1
@@ -1024,12 +866,6 @@ class CalibratorSession:
         self.keyframe_zoom.clear()
         self._sampled_keyframes.clear()
         self.solver.reference_keyframe_id = None
-        self._raw_H.clear()
-        if self.distortion is not None:  # keyframe ids restart with the new map; the curve is kept
-            curve = self.distortion.curve
-            self.distortion = KeyframeDistortionEstimator(*self.image_size) if self.image_size else None
-            if self.distortion is not None:
-                self.distortion.curve = curve
         self._dirty = True
 
     # ----------------------------------------------------------------------------------------------
