@@ -42,8 +42,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -56,6 +57,7 @@ from ptz_selfcal.core.distortion_estimation import (
 )
 from ptz_selfcal.core.geometry import normalise_homography
 from ptz_selfcal.core.homography import estimate_homography
+from ptz_selfcal.core.intrinsics import SelfCalibrationError
 
 Array = NDArray[np.float64]
 
@@ -371,3 +373,127 @@ class LensCorrection:
                 self._plumb_bob.popitem(last=False)
         D[0], D[1] = cached
         return D
+
+
+# --------------------------------------------------------------------------------------------------
+# The calibrator node's seam
+# --------------------------------------------------------------------------------------------------
+class SessionLensHook:
+    """LensCorrection in front of a calibration session (core/calibration_state.CalibratorSession).
+
+    The node calls, in its three threads of control:
+    - `frame(H, state, keyframe_id, reference, width, height)` (frame callback): the tracked homography
+      replaced by the corrected one; NEW_KEYFRAME frames before the first distortion estimate are
+      passed on as plain TRACKING frames, so the session never mixes corrected and uncorrected
+      keyframes (self-calibration on uncorrected ones goes astray, section 7).
+    - `matches(...)` (KeyframeMatches callback): queued, O(1).
+    - `work(session)` (the node's worker, after `session.step`): drains the queue into LensCorrection,
+      gives it the session's keyframe focal lengths and principal point (nominal before the first
+      calibration), re-estimates distortion when matches arrived, and re-sends the latest keyframe
+      matches to the session on corrected coordinates (the bundle adjustment's observations) with the
+      corrected link homographies.
+    - `distortion(K)` (frame callback): plumb_bob D for the frame's K.
+    The session must run without its own distortion handling (SessionConfig.estimate_distortion off).
+    """
+
+    def __init__(
+        self, nominal_focal_of_width: Any, resend: int = 64, centre_from_calibration: bool = False
+    ) -> None:
+        self._nominal = nominal_focal_of_width
+        self.centre_from_calibration = centre_from_calibration
+        self.lens: LensCorrection | None = None
+        self._reference: str | None = None
+        self._queue: deque[tuple[int, int, Array, Array]] = deque(maxlen=4 * resend)
+        self._raw_matches: deque[tuple[int, int, Array, Array]] = deque(maxlen=resend)
+        self._size: tuple[int, int] | None = None
+        self.held_keyframes = 0
+
+    def _ensure(self, reference: str, width: int, height: int) -> LensCorrection | None:
+        if width <= 0 or height <= 0:
+            return self.lens
+        if self.lens is None or self._size != (width, height) or reference != self._reference:
+            # new map or new image size: the tracker's keyframe ids and homographies start afresh
+            self.lens = LensCorrection(width, height, float(self._nominal(width)))
+            self._size, self._reference = (width, height), reference
+            self._queue.clear()
+            self._raw_matches.clear()
+        return self.lens
+
+    def frame(
+        self, H: Array | None, state: str, keyframe_id: int, reference: str, width: int, height: int
+    ) -> tuple[Array | None, str]:
+        lens = self._ensure(reference, width, height)
+        if lens is None or H is None or not np.all(np.isfinite(H)):
+            return H, state
+        kid = int(keyframe_id)
+        if state == "NEW_KEYFRAME":
+            lens.add_keyframe(kid, H)
+        corrected = lens.frame_homography(H, kid)
+        if corrected is not None:
+            return corrected, state
+        if state == "NEW_KEYFRAME" and kid != lens.reference_id:
+            self.held_keyframes += 1
+            return H, "TRACKING"
+        return H, state
+
+    def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
+        self._queue.append((int(keyframe_id), int(other_keyframe_id), pts, other_pts))
+
+    def work(self, session: Any) -> bool:
+        """Worker step; True when the distortion estimate changed."""
+        lens = self.lens
+        if lens is None:
+            return False
+        while self._queue:
+            m = self._queue.popleft()
+            if lens.add_match(*m):
+                self._raw_matches.append(m)
+        if lens.pending == 0:
+            return False
+        calibrator = getattr(session, "calibrator", None)
+        if calibrator is not None:
+            if getattr(calibrator, "calibrated", False) and lens.reference_id is not None:
+                K = calibrator.reference_K
+                lens.set_keyframe(lens.reference_id, K[0, 0], self._centre(K))
+            solved = set()
+            for kf in list(getattr(calibrator, "keyframes", [])):
+                if kf.K is not None:
+                    lens.set_keyframe(int(kf.keyframe_id), kf.K[0, 0], self._centre(kf.K))
+                    solved.add(int(kf.keyframe_id))
+            # the other keyframes (held, dropped, not solved yet): the reference calibration (or the
+            # prior) transferred through their corrected chain, eq. 20
+            snap = lens.snapshot
+            for kid, H in ({} if snap is None else snap.H).items():
+                if kid in solved or kid == lens.reference_id:
+                    continue
+                try:
+                    K = calibrator.frame_intrinsics(H)[0]
+                except (SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+                    continue
+                if np.all(np.isfinite(K)):
+                    lens.set_keyframe(kid, K[0, 0], self._centre(K))
+        if not lens.update():
+            return False
+        snap = lens.snapshot
+        assert snap is not None
+        # the session's keyframes were stored with the correction known when they arrived: give them
+        # their chains recomputed with the new estimate (the worker owns the calibrator here)
+        if calibrator is not None:
+            for kf in list(getattr(calibrator, "keyframes", [])):
+                H = snap.H.get(int(kf.keyframe_id))
+                if H is not None:
+                    kf.H = H
+        for i, j, a, b in self._raw_matches:
+            H_i, H_j = snap.H.get(i), snap.H.get(j)
+            link = None if H_i is None or H_j is None else H_i @ np.linalg.inv(H_j)
+            session.add_keyframe_matches(i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link)
+        return True
+
+    def _centre(self, K: Array) -> Array | None:
+        # the distortion centre and the principal point are nearly interchangeable in rotation-only
+        # data (the estimate follows the assumed centre), so feeding the calibrated principal point
+        # back drifts; by default the centre stays at the image centre (None)
+        return K[:2, 2] if self.centre_from_calibration else None
+
+    def distortion(self, K: Array) -> Array:
+        return np.zeros(5) if self.lens is None else self.lens.plumb_bob(K)
