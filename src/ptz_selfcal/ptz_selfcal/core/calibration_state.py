@@ -559,7 +559,7 @@ class CalibratorSession:
         out = self._nominal_output(frame, status)
         snap = self._snapshot
         K_ref = out.K if snap is None else snap.calibrator.reference_K
-        if H is not None:
+        if H is not None and (snap is not None or self.image_size is not None):
             try:
                 K, R, _ = (
                     snap.calibrator if snap is not None else self._prior_calibrator()
