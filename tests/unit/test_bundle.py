@@ -292,6 +292,7 @@ def test_focal_lower_bound_and_errors() -> None:
         seq.image_size,
         SQUARE_CONSTANT_PP,
         f_min=1500.0,
+        max_iterations=8,
     )
     assert not result.ok
     assert np.all(result.focal >= 1500.0)
