@@ -529,3 +529,283 @@ def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps:
         "late_latencies": late,
         "rss": rss,
     }
+
+
+def cpu_seconds(pid: int) -> float:
+    """user + system CPU seconds of a process (Linux /proc), NaN when it is gone."""
+    import os
+
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return math.nan
+
+
+def own_rss_mb() -> float:
+    import os
+
+    return rss_mb(os.getpid())
+
+
+def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 720, period: int = 600,
+              keyframe_every: int = 30) -> dict:  # fmt: skip
+    """n frames through core CalibratorSession.process (the calibrator node's per-frame path) fed exact
+    synthetic homographies of a camera sweeping periodically over pan/tilt/zoom, like a patrolling PTZ
+    camera: keyframes (and their matches, and a worker step) are made during the first period; later
+    periods revisit the same views, tracked against the existing keyframes, with a worker step every
+    keyframe_every frames. Returns CPU ms per frame and RSS (MB) of this process per 1000-frame block."""
+    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
+    from ptz_selfcal.core.geometry import apply_homography
+
+    session = CalibratorSession(SessionConfig(nominal_hfov_deg=55.0))
+    rng = np.random.default_rng(0)
+    t = np.arange(period) / period
+    f = 1100.0 * (2.0 - np.cos(2 * np.pi * t))
+    pan = np.radians(30.0 * np.sin(2 * np.pi * t))
+    tilt = np.radians(6.0 * np.sin(4 * np.pi * t + 0.3))
+    pp = (0.5 * (width - 1) + 12.0, 0.5 * (height - 1) - 8.0)
+    K = [intrinsic_matrix(fi, *pp) for fi in f]
+    R = [ptz_rotation(p, q) for p, q in zip(pan, tilt)]
+    Hs = [K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(period)]
+    block = 1000
+    cpu = np.zeros(n)
+    rss: list[float] = []
+    errors = np.full(n, np.nan)  # preallocated: the soak's own bookkeeping must not grow per frame
+    statuses: dict[str, int] = {}
+    wall = time.perf_counter()
+    for j in range(n):
+        c = j % period
+        first = j < period
+        new_kf = first and c % keyframe_every == 0
+        kid = c - c % keyframe_every
+        frame = FrameInput(
+            stamp=j / 30.0, H=Hs[c], tracking_state="NEW_KEYFRAME" if new_kf else "TRACKING", width=width,
+            height=height, keyframe_id=kid, reference_id="ref", zoom=float(f[c]),
+        )  # fmt: skip
+        t0 = time.thread_time()
+        out = session.process(frame)
+        if new_kf and c >= keyframe_every:
+            a, b = c, c - keyframe_every
+            xa = rng.uniform([0, 0], [width - 1, height - 1], (200, 2))
+            xb = apply_homography(Hs[b] @ np.linalg.inv(Hs[a]), xa)
+            ok = (xb[:, 0] >= 0) & (xb[:, 0] <= width - 1) & (xb[:, 1] >= 0) & (xb[:, 1] <= height - 1)
+            session.add_keyframe_matches(a, b, xa[ok] + rng.normal(0, 0.3, (ok.sum(), 2)), xb[ok])
+        if c % keyframe_every == 0:
+            session.step(0.5 if first else 0.05)
+        cpu[j] = time.thread_time() - t0
+        statuses[out.status] = statuses.get(out.status, 0) + 1
+        if out.status in CALIBRATED:
+            errors[j] = abs(out.K[0, 0] / f[c] - 1.0)
+        if (j + 1) % block == 0:
+            rss.append(own_rss_mb())
+    blocks = cpu[: n - n % block].reshape(-1, block).mean(axis=1) * 1e3
+    a, b = warmup
+    return {
+        "frames": n,
+        "wall_s": time.perf_counter() - wall,
+        "cpu_ms_blocks": blocks.tolist(),
+        "rss_blocks": rss,
+        "warm_cpu_ms": float(np.mean(blocks[a // block : b // block])),
+        "end_cpu_ms": float(np.mean(blocks[-((b - a) // block) :])),
+        # the least disturbed 1000-frame block of each window: the per-frame cost itself, robust to other
+        # processes on the (shared, 2-core) machine, which inflate thread CPU time through the caches
+        "warm_cpu_min": float(np.min(blocks[a // block : b // block])),
+        "end_cpu_min": float(np.min(blocks[-((b - a) // block) :])),
+        "warm_rss": float(np.mean(rss[a // block : b // block])),
+        "end_rss": float(np.mean(rss[-((b - a) // block) :])),
+        "p95_cpu_ms": float(np.percentile(cpu, 95) * 1e3),
+        "statuses": statuses,
+        "median_error": float(np.nanmedian(errors)) if np.isfinite(errors).any() else math.nan,
+        "solves": session.counters["solves"],
+    }
+
+
+def graph_soak(feeder: Feeder, pids: dict[str, int], n: int, width: int, height: int,
+               in_flight: int = 3, block: int = 250) -> dict:  # fmt: skip
+    """n frames through the real graph, lossless and pipelined (at most `in_flight` images without their
+    CameraInfo), views of a periodic patrol; per block of frames: RSS and CPU seconds per frame of each
+    node, and latencies (send -> CameraInfo)."""
+    fw = f_wide_for(width)
+    period = 240
+    views = sweep(period, width, fw, pan_deg=12.0, tilt_deg=3.0, zoom_max=1.5)
+    images = [render(v, width, height) for v in views]
+    stamps: list[int] = []
+    pending: list[int] = []
+    rss = {name: [] for name in pids}
+    cpu = {name: [] for name in pids}
+    cpu_last = {name: cpu_seconds(pid) for name, pid in pids.items()}
+    lat_blocks: list[list[float]] = []
+    lost = 0
+    start = time.monotonic()
+    for j in range(n):
+        while len(pending) >= in_flight:
+            feeder.executor.spin_once(timeout_sec=0.01)
+            now = time.monotonic()
+            pending = [ns for ns in pending if ns not in feeder.infos and now - feeder.sent[ns] < 20.0]
+        c = j % period
+        t = T0 + j / 30.0
+        ns = feeder.send_view(t, views[c], images[c])
+        stamps.append(ns)
+        pending.append(ns)
+        if (j + 1) % block == 0:
+            for name, pid in pids.items():
+                rss[name].append(rss_mb(pid))
+                now_cpu = cpu_seconds(pid)
+                cpu[name].append((now_cpu - cpu_last[name]) / block * 1e3)
+                cpu_last[name] = now_cpu
+            lat_blocks.append([feeder.info_arrival[s] - feeder.sent[s] for s in stamps[-block:]
+                               if s in feeder.info_arrival])  # fmt: skip
+    feeder.spin(10.0, lambda: all(s in feeder.infos for s in stamps[-in_flight:]))
+    lost = sum(1 for s in stamps if s not in feeder.infos)
+    return {
+        "frames": n,
+        "wall_s": time.monotonic() - start,
+        "calibrated": sum(1 for s in stamps if s in feeder.infos),
+        "duplicates": sum(1 for s in stamps if len(feeder.infos.get(s, [])) > 1),
+        "lost": lost,
+        "rss": rss,
+        "cpu_ms_per_frame": cpu,
+        "latency_blocks": lat_blocks,
+        "statuses": {
+            name: sum(
+                1 for s in stamps if s in feeder.frames and STATUS_NAMES[feeder.frames[s].status] == name
+            )
+            for name in STATUS_NAMES.values()
+        },
+    }
+
+
+def bad_input_catalogue(feeder: Feeder, width: int, height: int, n: int = 60):
+    """Good rendered frames (lock-step) interleaved with the bad input catalogue of test_bad_input.py;
+    returns (views, stamps that must get exactly one CameraInfo, stamps that must get none)."""
+    W, H = width, height
+    fw = f_wide_for(W)
+    views = sweep(n, W, fw)
+    images = [render(v, W, H) for v in views]
+    good: list[int] = []  # stamps that must get exactly one CameraInfo
+    refused: list[int] = []  # stamps that must get none
+    k = 0
+
+    def t_of(i: int) -> float:
+        return T0 + i / 30.0
+
+    def send_good(i: int, encoders: bool = True) -> int:
+        if encoders:
+            feeder.send_encoders(t_of(i), (views[i].pan, views[i].tilt, views[i].zoom))
+        ns = feeder.send_image(t_of(i), images[i])
+        good.append(ns)
+        assert feeder.wait_info(ns), f"good frame {i} got no CameraInfo"
+        return ns
+
+    jpeg16k = cv2.imencode(".jpg", np.zeros((16384, 16384), np.uint8))[1].tobytes()
+    png = cv2.imencode(".png", images[0])[1].tobytes()
+    for k in range(n):
+        t_bad = t_of(k) + 0.011  # bad inputs get stamps of their own between the good frames
+        if k == 5:
+            refused.append(feeder.send_image(t_bad, np.zeros((16384, 16384), np.uint8)))  # 256 MB
+        elif k == 7:  # a lying header: 16k x 16k claimed, 1 kB of data
+            refused.append(feeder.send_image(t_bad, images[0], data=bytes(1024), width=16384, height=16384))
+        elif k == 9:
+            refused.append(feeder.send_compressed(t_bad, jpeg16k, "jpeg"))  # decompression bomb
+        elif k == 11:
+            refused.append(feeder.send_compressed(t_bad, b"", "jpeg"))
+        elif k == 13:
+            refused.append(feeder.send_compressed(t_bad, bytes(range(256)) * 8, "jpeg"))
+        elif k == 15:
+            refused.append(feeder.send_compressed(t_bad, png[:40], "png"))  # header only
+        elif k == 17:
+            refused.append(feeder.send_compressed(t_bad, png, "16UC1; compressedDepth"))
+        elif k == 19:
+            refused.append(feeder.send_image(t_bad, images[0], width=0, height=H, step=0, data=b""))
+        elif k == 21:
+            feeder.send_encoders(t_of(k), (views[k].pan, views[k].tilt), names=("pan", "tilt"))
+            feeder.send_encoders(t_of(k) + 0.002, (views[k].zoom,), names=("zoom",))
+        elif k == 23:
+            feeder.send_encoders(t_of(k) - 0.002, (1.0, 2.0), names=("pan", "tilt", "zoom"))  # mismatch
+            feeder.send_encoders(t_of(k) - 0.001, (1.0, 2.0), names=("a", "b"))  # no known joint
+        elif k == 25:
+            feeder.send_encoders(t_of(k) - 0.003, (math.inf, -math.inf, math.nan))
+        elif k == 27:
+            feeder.send_encoders(t_of(k) + 1e6, (0.0, 0.0, 0.0))  # 11 days ahead: rejected
+        if k == 21:
+            send_good(k, encoders=False)  # its encoders came in two partial messages
+        else:
+            send_good(k)
+        if k == 31:  # the same stamp again: refused as a duplicate, the first one keeps its CameraInfo
+            feeder.send_image(t_of(k), images[k])
+        elif k == 33:  # an image older than the previous one (not a duplicate): calibrated anyway
+            feeder.send_encoders(t_of(k) - 0.005, (views[k].pan, views[k].tilt, views[k].zoom))
+            ns = feeder.send_image(t_of(k) - 0.005, images[k])
+            good.append(ns)
+            assert feeder.wait_info(ns), "the out-of-order image got no CameraInfo"
+        elif k == 35:  # an image 10 years in the future: calibrated (encoders invalid), no lasting harm
+            ns = feeder.send_image(t_of(k) + 3.15e8, images[k])
+            good.append(ns)
+            assert feeder.wait_info(ns, 20.0), "the far-future image got no CameraInfo"
+    return views, good, refused
+
+
+SLACK = 2e-4  # absolute slack on focal error comparisons (0.02 %: per-frame tracking noise)
+
+
+def started(output: str) -> dict[str, list[int]]:
+    """Node name -> pids the `launch` supervisor started (in order), from its output."""
+    import re
+
+    pids: dict[str, list[int]] = {}
+    for name, pid in re.findall(r"\[launch\] started (\w+) \(pid (\d+)\)", output):
+        pids.setdefault(name, []).append(int(pid))
+    return pids
+
+
+def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: str, width: int, height: int,
+                     warmup: int = 90, after_passes: int = 3) -> dict:  # fmt: skip
+    """Calibrate (warm-up sweep, then a window of views until calibrated), wait for two state saves, kill -9
+    the victim node of a running `launch`, wait for its restart, probe until frames come through again,
+    then the window `after_passes` times. Returns frames lost, the frames whose focal error is worse than
+    1.1 x the worst of the window before + SLACK, statuses after, time from the kill to recovery."""
+    import os
+    import signal
+
+    fw = f_wide_for(width)
+    ls = LockStep(feeder, width, height, timeout=30.0)
+    for v in sweep(warmup, width, fw, zoom_max=1.6):
+        ls.send(v, None, "warmup")
+    window = window_views(width, fw)
+    images = [render(v, width, height) for v in window]
+    assert ls.until_calibrated(window, images), "the calibration did not converge during the warm-up"
+    before = [ls.send(v, im, "before") for v, im in zip(window, images)]
+    assert {ls.status(s) for s in before} <= CALIBRATED, [ls.status(s) for s in before]
+    # the saved state holds this calibration before the kill
+    assert feeder.spin(10.0, lambda: feeder.counter("calibrator", "state_saves") >= 2)
+    time.sleep(0.8)
+    threshold = 1.1 * max(ls.error(s) for s in before) + SLACK
+    pid = started(launch_output())[victim][-1]
+    os.kill(pid, signal.SIGKILL)
+    killed = time.monotonic()
+    assert feeder.spin(30.0, lambda: len(started(launch_output()).get(victim, [])) == 2), launch_output()
+    feeder.wait_connected(30.0)
+    # A killed process's DDS endpoints stay in the graph until their lease expires, so the first frames
+    # after the restart may go to the dead node: probe until a frame comes through again.
+    probe = None
+    while probe is None and time.monotonic() - killed < 60.0:
+        probe = ls.try_send(window[0], images[0], "probe", 2.0)
+    assert probe is not None, launch_output()
+    after: list[Sent] = []
+    for _ in range(after_passes):
+        after += [ls.send(v, im, "after") for v, im in zip(window, images)]
+    worse = [i for i, s in enumerate(after) if ls.error(s) > threshold]
+    first_good = next((i for i, _ in enumerate(after) if i not in worse), None)
+    recover_s = feeder.info_arrival[after[first_good].stamp_ns] - killed if first_good is not None else None
+    return {
+        "frames": len(ls.log) + len(ls.lost),
+        "calibrated": len(ls.log),
+        "lost": len(ls.lost),
+        "worse": worse,
+        "statuses": [ls.status(s) for s in after],
+        "threshold": threshold,
+        "before": float(np.median([ls.error(s) for s in before])),
+        "after": float(np.median([ls.error(s) for s in after])),
+        "recover_s": recover_s,
+    }

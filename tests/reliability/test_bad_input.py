@@ -16,13 +16,10 @@ types or absurd values for every node (direct and through `launch`).
 
 from __future__ import annotations
 
-import math
 import shutil
 import subprocess
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 import reliability_harness as rh
 from conftest import REPO, cli_command, node_command
@@ -38,71 +35,11 @@ def test_graph_survives_the_catalogue_and_calibrates_every_good_frame(ros_env, s
     feeder = rh.Feeder("bad_input_feeder")
     try:
         feeder.wait_connected()
-        fw = rh.f_wide_for(W)
-        views = rh.sweep(60, W, fw)
-        images = [rh.render(v, W, H) for v in views]
-        good: list[int] = []  # stamps that must get exactly one CameraInfo
-        refused: list[int] = []  # stamps that must get none
-        k = 0
+        views, good, refused = rh.bad_input_catalogue(feeder, W, H)
 
         def t_of(i: int) -> float:
             return rh.T0 + i / 30.0
 
-        def send_good(i: int, encoders: bool = True) -> int:
-            if encoders:
-                feeder.send_encoders(t_of(i), (views[i].pan, views[i].tilt, views[i].zoom))
-            ns = feeder.send_image(t_of(i), images[i])
-            good.append(ns)
-            assert feeder.wait_info(ns), f"good frame {i} got no CameraInfo"
-            return ns
-
-        jpeg16k = cv2.imencode(".jpg", np.zeros((16384, 16384), np.uint8))[1].tobytes()
-        png = cv2.imencode(".png", images[0])[1].tobytes()
-        for k in range(60):
-            t_bad = t_of(k) + 0.011  # bad inputs get stamps of their own between the good frames
-            if k == 5:
-                refused.append(feeder.send_image(t_bad, np.zeros((16384, 16384), np.uint8)))  # 256 MB
-            elif k == 7:  # a lying header: 16k x 16k claimed, 1 kB of data
-                refused.append(
-                    feeder.send_image(t_bad, images[0], data=bytes(1024), width=16384, height=16384)
-                )
-            elif k == 9:
-                refused.append(feeder.send_compressed(t_bad, jpeg16k, "jpeg"))  # decompression bomb
-            elif k == 11:
-                refused.append(feeder.send_compressed(t_bad, b"", "jpeg"))
-            elif k == 13:
-                refused.append(feeder.send_compressed(t_bad, bytes(range(256)) * 8, "jpeg"))
-            elif k == 15:
-                refused.append(feeder.send_compressed(t_bad, png[:40], "png"))  # header only
-            elif k == 17:
-                refused.append(feeder.send_compressed(t_bad, png, "16UC1; compressedDepth"))
-            elif k == 19:
-                refused.append(feeder.send_image(t_bad, images[0], width=0, height=H, step=0, data=b""))
-            elif k == 21:
-                feeder.send_encoders(t_of(k), (views[k].pan, views[k].tilt), names=("pan", "tilt"))
-                feeder.send_encoders(t_of(k) + 0.002, (views[k].zoom,), names=("zoom",))
-            elif k == 23:
-                feeder.send_encoders(t_of(k) - 0.002, (1.0, 2.0), names=("pan", "tilt", "zoom"))  # mismatch
-                feeder.send_encoders(t_of(k) - 0.001, (1.0, 2.0), names=("a", "b"))  # no known joint
-            elif k == 25:
-                feeder.send_encoders(t_of(k) - 0.003, (math.inf, -math.inf, math.nan))
-            elif k == 27:
-                feeder.send_encoders(t_of(k) + 1e6, (0.0, 0.0, 0.0))  # 11 days ahead: rejected
-            if k == 21:
-                send_good(k, encoders=False)  # its encoders came in two partial messages
-            else:
-                send_good(k)
-            if k == 31:  # the same stamp again: refused as a duplicate, the first one keeps its CameraInfo
-                feeder.send_image(t_of(k), images[k])
-            elif k == 33:  # an image older than the previous one (not a duplicate): calibrated anyway
-                feeder.send_encoders(t_of(k) - 0.005, (views[k].pan, views[k].tilt, views[k].zoom))
-                ns = feeder.send_image(t_of(k) - 0.005, images[k])
-                good.append(ns)
-                assert feeder.wait_info(ns), "the out-of-order image got no CameraInfo"
-            elif k == 35:  # an image 10 years in the future: calibrated (encoders invalid), no lasting harm
-                ns = feeder.send_image(t_of(k) + 3.15e8, images[k])
-                good.append(ns)
-                assert feeder.wait_info(ns, 20.0), "the far-future image got no CameraInfo"
         feeder.spin(3.0, lambda: all(ns in feeder.infos for ns in good))
         # exactly one CameraInfo per good image, none for a refused one
         assert sorted(feeder.infos) == sorted(good), (len(feeder.infos), len(good))

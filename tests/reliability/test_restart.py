@@ -7,8 +7,6 @@ replaced atomically: a reader polling them throughout never sees a partial file.
 from __future__ import annotations
 
 import os
-import re
-import signal
 import threading
 import time
 from pathlib import Path
@@ -22,14 +20,6 @@ from conftest import cli_command
 ROS_DOMAIN_ID = 185
 VICTIMS = ("calibrator", "homography_tracker", "frame_ingest")
 W, H = 640, 360
-SLACK = 2e-4  # absolute slack on focal errors (per-frame tracking noise)
-
-
-def started(output: str) -> dict[str, list[int]]:
-    pids: dict[str, list[int]] = {}
-    for name, pid in re.findall(r"\[launch\] started (\w+) \(pid (\d+)\)", output):
-        pids.setdefault(name, []).append(int(pid))
-    return pids
 
 
 class StateWatcher(threading.Thread):
@@ -89,43 +79,11 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
     watcher.start()
     try:
         feeder.wait_connected(60.0)
-        fw = rh.f_wide_for(W)
-        ls = rh.LockStep(feeder, W, H, timeout=30.0)
-        for v in rh.sweep(90, W, fw, zoom_max=1.6):
-            ls.send(v, None, "warmup")
-        window = rh.window_views(W, fw)
-        images = [rh.render(v, W, H) for v in window]
-        assert ls.until_calibrated(window, images), "the calibration did not converge during the warm-up"
-        before = [ls.send(v, im, "before") for v, im in zip(window, images)]
-        assert {ls.status(s) for s in before} <= rh.CALIBRATED, [ls.status(s) for s in before]
-        # the saved state holds this calibration before the kill
-        assert feeder.spin(10.0, lambda: feeder.counter("calibrator", "state_saves") >= 2)
-        time.sleep(0.8)
-        threshold = 1.1 * max(ls.error(s) for s in before) + SLACK
-
-        pid = started(launch.output())[victim][-1]
-        os.kill(pid, signal.SIGKILL)
-        killed = time.monotonic()
-        assert feeder.spin(30.0, lambda: len(started(launch.output()).get(victim, [])) == 2), launch.output()
-        feeder.wait_connected(30.0)
-        # A killed process's DDS endpoints stay in the graph until their lease expires, so the first
-        # frames after the restart may go to the dead node: probe until a frame comes through again.
-        probe = None
-        while probe is None and time.monotonic() - killed < 60.0:
-            probe = ls.try_send(window[0], images[0], "probe", 2.0)
-        assert probe is not None, launch.output()
-        after = []
-        for _ in range(3):
-            after += [ls.send(v, im, "after") for v, im in zip(window, images)]
-        worse = [i for i, s in enumerate(after) if ls.error(s) > threshold]
-        statuses = [ls.status(s) for s in after]
-        first_good = next((i for i, s in enumerate(after) if i not in worse), None)
-        recover_s = (
-            feeder.info_arrival[after[first_good].stamp_ns] - killed if first_good is not None else None
-        )
+        r = rh.restart_scenario(feeder, launch.output, victim, W, H)
+        worse, statuses = r["worse"], r["statuses"]
         print(
-            f"{victim}: {len(ls.lost)} frames lost in the restart, worse frames {worse}, statuses "
-            f"{statuses[:8]}..., recovered {recover_s} s after the kill, threshold {threshold:.5f}"
+            f"{victim}: {r['lost']} frames lost in the restart, worse frames {worse}, statuses "
+            f"{statuses[:8]}..., recovered {r['recover_s']} s after the kill, threshold {r['threshold']:.5f}"
         )
         out = launch.output()
         assert f"{victim} exited unexpectedly with status -9" in out, out

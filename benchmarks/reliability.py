@@ -1,0 +1,369 @@
+"""Issue 7 "Measure": reliability of the node suite, the full-size versions of tests/reliability.
+
+For each experiment it prints frames in, frames calibrated, frames skipped and why, peak memory (RSS of
+each node process), latency percentiles and the time to recover:
+
+1. Bad input: the catalogue of tests/reliability/test_bad_input.py (16k x 16k raw image, lying 16k header,
+   16k JPEG, empty/undecodable/compressedDepth data, zero-size, partial/mismatched/+-inf/far-future
+   encoders, duplicate/out-of-order/far-future image stamps) between good frames, three node processes.
+2. Tracking loss: black frames, heavy blur, a scene cut, a 90 deg preset move at full zoom (rendered PTZ
+   views with exact ground truth): statuses and focal error while lost, error before/after, recovery.
+3. Overload: 1920x1080 JPEG at 60 frames/s (best effort, like a camera driver), latest-wins policy.
+4. Soak: --core-frames (default 100,000) through the calibrator core's per-frame path, and --graph-frames
+   (default 20,000, 320x180 images) through the three node processes.
+5. Restarts: kill -9 of each node during `ptz-selfcal launch` (state_dir, zoom model).
+
+The experiments are the same code as the CI tests (tests/reliability/reliability_harness.py), larger.
+Writes benchmarks/results/reliability.txt (and prints it). Usage:
+    ros2_ws/venv/bin/python benchmarks/reliability.py [--core-frames 100000] [--graph-frames 20000]
+        [--overload-seconds 30] [--only bad_input tracking_loss overload core_soak graph_soak restarts]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "tests" / "reliability")]
+
+import reliability_harness as rh  # noqa: E402
+from conftest import NodeProcess, cli_command  # noqa: E402
+
+EXPERIMENTS = ("bad_input", "tracking_loss", "overload", "core_soak", "graph_soak", "restarts")
+
+
+def pct(values, q: float, scale: float = 1e3) -> str:
+    return f"{np.percentile(np.asarray(values, float), q) * scale:.0f}" if len(values) else "nan"
+
+
+def latency_line(values) -> str:
+    return (
+        f"latency (image sent -> its CameraInfo) p50 {pct(values, 50)} ms, p95 {pct(values, 95)} ms, "
+        f"p99 {pct(values, 99)} ms, max {pct(values, 100)} ms"
+    )
+
+
+class Domain:
+    """A fresh ROS domain (and LOCALHOST discovery) for each experiment: no stale endpoints."""
+
+    def __init__(self, first: int = 190) -> None:
+        self.next = first
+
+    @contextlib.contextmanager
+    def __call__(self) -> Iterator[dict[str, str]]:
+        domain = str(self.next)
+        self.next += 1
+        os.environ.update(ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "RCUTILS_COLORIZED_OUTPUT": "0"}
+        yield env
+
+
+@contextlib.contextmanager
+def graph(env: dict[str, str], workdir: Path, **kwargs) -> Iterator[dict[str, NodeProcess]]:
+    procs: list[NodeProcess] = []
+
+    def start(cmd, environment, name):
+        proc = NodeProcess(cmd, environment, workdir, f"{name}-{len(procs)}")
+        procs.append(proc)
+        return proc
+
+    nodes = rh.start_graph(start, env, **kwargs)
+    try:
+        yield nodes
+    finally:
+        for proc in procs:
+            if proc.alive():
+                proc.stop(timeout=20.0)
+
+
+class Sampler:
+    """Peak RSS of node processes, sampled while the feeder spins."""
+
+    def __init__(self, pids: dict[str, int]) -> None:
+        self.pids = pids
+        self.peak = dict.fromkeys(pids, 0.0)
+
+    def sample(self) -> None:
+        for name, pid in self.pids.items():
+            value = rh.rss_mb(pid)
+            if math.isfinite(value):
+                self.peak[name] = max(self.peak[name], value)
+
+    def line(self) -> str:
+        return "peak RSS " + ", ".join(f"{n} {v:.0f} MB" for n, v in self.peak.items())
+
+
+def skipped_line(diag: dict[str, str]) -> str:
+    kinds = {
+        k: v for k, v in diag.items() if k.startswith(("skipped_", "encoder_", "image_stamp", "dropped"))
+    }
+    kinds = {k: v for k, v in kinds.items() if k not in ("encoder_messages",) and v not in ("0", "0.0")}
+    return ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"
+
+
+# --------------------------------------------------------------------------------------------------------
+def bad_input(domain: Domain, work: Path, lines: list[str]) -> None:
+    with domain() as env, graph(env, work) as nodes:
+        feeder = rh.Feeder("bench_bad_input")
+        sampler = Sampler({n: p.pid for n, p in nodes.items()})
+        try:
+            feeder.wait_connected()
+            start = time.monotonic()
+            _views, good, refused = rh.bad_input_catalogue(feeder, 640, 360, n=120)
+            feeder.spin(3.0, lambda: all(ns in feeder.infos for ns in good))
+            sampler.sample()
+            feeder.spin(1.0)
+            wall = time.monotonic() - start
+            d = feeder.diagnostics
+            once = sum(1 for ns in good if len(feeder.infos.get(ns, [])) == 1)
+            lat = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in good if ns in feeder.info_arrival]
+            lines += [
+                "",
+                "1. Bad input catalogue (three node processes, 640x360 good frames in lock-step)",
+                f"   frames in {d['frame_ingest']['frames_in']} ({len(good)} good, {len(refused)} refused, "
+                f"1 duplicate stamp), frames calibrated {len(feeder.infos)} (good frames with exactly one "
+                f"CameraInfo: {once}/{len(good)}; CameraInfo for a refused frame: "
+                f"{len(set(refused) & set(feeder.infos))}); {wall:.0f} s",
+                f"   skipped and why (frame_ingest /diagnostics): {skipped_line(d['frame_ingest'])}",
+                f"   {sampler.line()} (after the 256 MB 16k x 16k image)",
+                f"   {latency_line(lat)}",
+                "   nodes alive at the end: " + ", ".join(f"{n} {p.alive()}" for n, p in nodes.items()),
+            ]
+        finally:
+            feeder.close()
+
+
+def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:
+    with domain() as env, graph(env, work) as nodes:
+        feeder = rh.Feeder("bench_loss")
+        sampler = Sampler({n: p.pid for n, p in nodes.items()})
+        try:
+            feeder.wait_connected()
+            r = rh.tracking_loss_scenario(feeder, 640, 360, warmup=150, window=20, bad=15)
+            sampler.sample()
+            stamps = r["_log"]["stamps"]
+            lat = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in stamps if ns in feeder.info_arrival]
+            lines += [
+                "",
+                "2. Tracking loss (three node processes, 640x360 rendered views, zoom 1x-2x, disturbances at "
+                "full zoom 2x; each between two passes of the same 20 views)",
+                f"   frames in {len(stamps)}, frames calibrated (one CameraInfo each) "
+                f"{sum(1 for ns in stamps if len(feeder.infos.get(ns, [])) == 1)}; {sampler.line()}",
+                f"   {latency_line(lat)}",
+                f"   {'disturbance':<14} {'frames':>6}  {'statuses while lost':<34} {'f err lost %':>12} "
+                f"{'before %':>9} {'after %':>8} {'ok<=1.1x':>8} {'recover':>8}",
+            ]
+            for name in ("black", "blur", "scene_cut", "preset_90deg"):
+                x = r[name]
+                counts: dict[str, int] = {}
+                for s in x["statuses"]:
+                    counts[s] = counts.get(s, 0) + 1
+                text = ", ".join(f"{k} {v}" for k, v in counts.items())
+                ok = x["after"] <= 1.1 * x["before"] + rh.SLACK
+                rec = (
+                    f"{x['recovery_frames']} fr/{x['recovery_s'] * 1e3:.0f} ms"
+                    if x["recovery_frames"] is not None
+                    else "never"
+                )
+                lines.append(
+                    f"   {name:<14} {x['frames']:>6}  {text:<34} {100 * max(x['errors']):>12.3f} "
+                    f"{100 * x['before']:>9.4f} {100 * x['after']:>8.4f} {'yes' if ok else 'NO':>8} {rec:>8}"
+                )
+            lines.append(
+                "   (ok: median focal error on the views after recovery <= 1.1 x before + 0.02 % absolute; "
+                "recover: frames of the returning view until calibrated again, and time from its first frame)"
+            )
+        finally:
+            feeder.close()
+
+
+def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> None:
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    latest = ("queue_policy:=latest", "queue_depth:=1")
+    with (
+        domain() as env,
+        graph(env, work, ingest=(*latest, "sensor_reliability:=best_effort"), tracker=latest,
+              working_width=640) as nodes,
+    ):  # fmt: skip
+        feeder = rh.Feeder(
+            "bench_overload", sensor_qos=QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
+        )
+        try:
+            feeder.wait_connected(compressed=True)
+            r = rh.overload_scenario(feeder, {n: p.pid for n, p in nodes.items()}, seconds)
+            feeder.spin(1.0)
+            d = feeder.diagnostics
+            ingest, tracker = d["frame_ingest"], d["homography_tracker"]
+            shed_dds = r["sent"] - int(ingest["frames_in"])
+            lines += [
+                "",
+                f"3. Overload: 1920x1080 JPEG at 60 frames/s for {seconds:.0f} s (best effort), "
+                "queue_policy latest (depth 1) in frame_ingest and homography_tracker, working width 640",
+                f"   frames in {r['sent']} ({r['rate']:.1f}/s), frames calibrated {r['calibrated']} "
+                f"({r['calibrated'] / r['elapsed']:.1f}/s), duplicates {r['duplicates']}",
+                f"   skipped and why: {shed_dds} shed by the latest-wins image queue before frame_ingest "
+                f"(frames_in {ingest['frames_in']}), {tracker.get('frames_dropped')} shed by the tracker's "
+                f"latest-wins queue (homography_tracker frames_dropped in /diagnostics), "
+                f"{int(ingest['frames_out']) - int(tracker['frames_in']) - int(tracker['frames_dropped'])} "
+                "in flight/unaccounted",
+                f"   {latency_line(r['latencies'])}; first third p95 {pct(r['early_latencies'], 95)} ms, "
+                f"last third p95 {pct(r['late_latencies'], 95)} ms",
+                "   peak RSS "
+                + ", ".join(f"{n} {max(v for _, v in s):.0f} MB" for n, s in r["rss"].items())
+                + "; RSS at the end "
+                + ", ".join(f"{n} {s[-1][1]:.0f} MB" for n, s in r["rss"].items()),
+                f"   tracker per-frame time in /diagnostics: mean {tracker.get('track_ms_mean')} ms, p95 "
+                f"{tracker.get('track_ms_p95')} ms",
+            ]
+        finally:
+            feeder.close()
+
+
+def core_soak(lines: list[str], core_frames: int) -> None:
+    r = rh.core_soak(core_frames, warmup=(2_000, 12_000))
+    lines += [
+        "",
+        f"4a. Soak, calibrator core (CalibratorSession.process + worker steps inline, exact homographies "
+        f"of a patrolling camera, period 600 frames): {r['frames']} frames in {r['wall_s']:.0f} s",
+        f"   frames calibrated {r['statuses'].get('CONVERGED', 0) + r['statuses'].get('CALIBRATING', 0)} "
+        f"({r['statuses']}), median focal error {100 * r['median_error']:.4f} %, {r['solves']} solves",
+        f"   CPU ms/frame after warm-up (frames 2k-12k) {r['warm_cpu_ms']:.3f}, at the end (last 10k) "
+        f"{r['end_cpu_ms']:.3f}: ratio {r['end_cpu_ms'] / r['warm_cpu_ms']:.3f} (target <= 1.1); best "
+        f"1000-frame block {r['warm_cpu_min']:.3f} vs {r['end_cpu_min']:.3f}: ratio "
+        f"{r['end_cpu_min'] / r['warm_cpu_min']:.3f}; p95 {r['p95_cpu_ms']:.3f} ms",
+        f"   RSS after warm-up {r['warm_rss']:.1f} MB, at the end {r['end_rss']:.1f} MB: ratio "
+        f"{r['end_rss'] / r['warm_rss']:.3f} (target <= 1.1); growth "
+        f"{(r['rss_blocks'][-1] - r['rss_blocks'][1]) / max(1, len(r['rss_blocks']) - 2) * 100:.2f} MB per "
+        "100k frames",
+    ]
+
+
+def graph_soak(domain: Domain, work: Path, lines: list[str], graph_frames: int) -> None:
+    with domain() as env, graph(env, work, working_width=160) as nodes:
+        feeder = rh.Feeder("bench_soak", homographies=False)
+        try:
+            feeder.wait_connected()
+            g = rh.graph_soak(
+                feeder, {n: p.pid for n, p in nodes.items()}, graph_frames, 320, 180, block=1000
+            )
+            lat_first = g["latency_blocks"][1] if len(g["latency_blocks"]) > 1 else []
+            lat_last = g["latency_blocks"][-1] if g["latency_blocks"] else []
+            lines += [
+                "",
+                f"4b. Soak, full graph (three node processes, 320x180 rendered patrol, lossless, 3 in "
+                f"flight): {g['frames']} frames in {g['wall_s']:.0f} s "
+                f"({g['frames'] / g['wall_s']:.1f} frames/s)",
+                f"   frames calibrated {g['calibrated']} (duplicates {g['duplicates']}, lost {g['lost']}); "
+                f"statuses {g['statuses']}",
+                f"   latency block 2 (frames 1k-2k): p50 {pct(lat_first, 50)} ms p95 {pct(lat_first, 95)} "
+                f"ms; "
+                f"last block: p50 {pct(lat_last, 50)} ms p95 {pct(lat_last, 95)} ms",
+                f"   {'node':<20} {'RSS 1k-2k MB':>12} {'RSS end MB':>10} {'ratio':>6} "
+                f"{'CPU ms/fr 1k-2k':>15} {'CPU end':>8} {'ratio':>6}",
+            ]
+            for name in nodes:
+                rss, cpu = g["rss"][name], g["cpu_ms_per_frame"][name]
+                a_cpu = float(np.mean(cpu[1:3]))
+                lines.append(
+                    f"   {name:<20} {rss[1]:>12.1f} {rss[-1]:>10.1f} {rss[-1] / rss[1]:>6.3f} {a_cpu:>15.2f} "
+                    f"{cpu[-1]:>8.2f} {cpu[-1] / a_cpu:>6.3f}"
+                )
+        finally:
+            feeder.close()
+
+
+def restarts(domain: Domain, work: Path, lines: list[str]) -> None:
+    lines += [
+        "",
+        "5. Restarts: kill -9 of one node during `ptz-selfcal launch` (state_dir, save_period 0.3 s), "
+        "640x360 views, calibrated, then the same 16 views 3 times after the restart",
+        f"   {'killed node':<20} {'frames in':>9} {'calibrated':>10} {'lost':>5} {'worse':>6} "
+        f"{'f err before %':>14} {'after %':>8} {'recover s':>9}  statuses after",
+    ]
+    for victim in ("calibrator", "homography_tracker", "frame_ingest"):
+        with domain() as env:
+            state_dir = work / f"state_{victim}"
+            params = work / f"params_{victim}.yaml"
+            params.write_text(
+                "frame_ingest:\n  ros__parameters:\n    working_width: 320\n"
+                "    sensor_reliability: reliable\n    diagnostics_period: 0.25\n"
+                "homography_tracker:\n  ros__parameters:\n    diagnostics_period: 0.25\n"
+                f"calibrator:\n  ros__parameters:\n    state_dir: {state_dir}\n    save_period: 0.3\n"
+                "    nominal_hfov_deg: 55.0\n    diagnostics_period: 0.25\n"
+            )
+            launch = NodeProcess(
+                cli_command("launch", "--params", str(params)), env, work, f"launch_{victim}"
+            )
+            feeder = rh.Feeder("bench_restart", homographies=False)
+            try:
+                feeder.wait_connected(60.0)
+                r = rh.restart_scenario(feeder, launch.output, victim, 640, 360)
+                counts: dict[str, int] = {}
+                for s in r["statuses"]:
+                    counts[s] = counts.get(s, 0) + 1
+                lines.append(
+                    f"   {victim:<20} {r['frames']:>9} {r['calibrated']:>10} {r['lost']:>5} "
+                    f"{len(r['worse']):>6} "
+                    f"{100 * r['before']:>14.4f} {100 * r['after']:>8.4f} {r['recover_s']:>9.2f}  {counts}"
+                )
+            finally:
+                feeder.close()
+                launch.stop(timeout=30.0)
+    lines.append(
+        "   (lost: frames sent while the killed node's DDS endpoints were still matched; worse: frames "
+        "with focal error > 1.1 x the worst before the kill + 0.02 %; recover: kill -> first CameraInfo)"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--core-frames", type=int, default=100_000)
+    parser.add_argument("--graph-frames", type=int, default=20_000)
+    parser.add_argument("--overload-seconds", type=float, default=30.0)
+    parser.add_argument("--only", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "reliability.txt")
+    args = parser.parse_args(argv)
+    lines = [
+        f"benchmarks/reliability.py  {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}  "
+        f"({os.cpu_count()} CPUs, python {sys.version.split()[0]})"
+    ]
+    domain = Domain()
+    with tempfile.TemporaryDirectory(prefix="ptz_reliability_") as tmp:
+        work = Path(tmp)
+        for name in args.only:
+            try:
+                if name == "bad_input":
+                    bad_input(domain, work, lines)
+                elif name == "tracking_loss":
+                    tracking_loss(domain, work, lines)
+                elif name == "overload":
+                    overload(domain, work, lines, args.overload_seconds)
+                elif name == "core_soak":
+                    core_soak(lines, args.core_frames)
+                elif name == "graph_soak":
+                    graph_soak(domain, work, lines, args.graph_frames)
+                else:
+                    restarts(domain, work, lines)
+            except Exception as exc:  # report and go on with the next experiment
+                lines.append(f"   {name}: FAILED: {type(exc).__name__}: {str(exc).splitlines()[0][:300]}")
+            print("\n".join(lines), flush=True)
+    text = "\n".join(lines) + "\n"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
