@@ -809,3 +809,41 @@ def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: s
         "after": float(np.median([ls.error(s) for s in after])),
         "recover_s": recover_s,
     }
+
+
+def zoom_preset_scenario(feeder: Feeder, width: int, height: int, warmup: int = 100) -> dict:
+    """A preset recall that zooms past the learned range while panning: warm-up sweep (1x..1.6x), the
+    window of views at the sweep's end (wide), then 10 sharp frames panning 9 deg/frame while zooming to
+    2.5x, 5 frames held there, 10 frames back (pan and zoom) to the window, and the window again."""
+    fw = f_wide_for(width)
+    ls = LockStep(feeder, width, height)
+    for v in sweep(warmup, width, fw, zoom_max=1.6):
+        ls.send(v, None, "warmup")
+    views = window_views(width, fw)
+    images = [render(v, width, height) for v in views]
+    assert ls.until_calibrated(views, images), "the calibration did not converge during the warm-up"
+    before = [ls.send(v, im, "window") for v, im in zip(views, images)]
+    last, fmax = views[-1], 2.5 * fw
+    moving: list[Sent] = []
+    for i in range(1, 11):
+        f = fw + (fmax - fw) * min(1.0, i / 3)
+        moving.append(
+            ls.send(View(last.pan + math.radians(9 * i), last.tilt, f, zoom_of(f, fw)), None, "move")
+        )
+    for _ in range(5):
+        moving.append(ls.send(moving[-1].view, None, "hold"))
+    for i in range(9, -1, -1):
+        f = last.f + (fmax - last.f) * i / 10
+        moving.append(
+            ls.send(View(last.pan + math.radians(9 * i), last.tilt, f, zoom_of(f, fw)), None, "back")
+        )
+    after = [ls.send(v, im, "window") for v, im in zip(views, images)]
+    after += [ls.send(v, im, "window") for v, im in zip(views, images)]
+    return {
+        "before": float(np.median([ls.error(s) for s in before])),
+        "after": float(np.median([ls.error(s) for s in after[len(views) :]])),
+        "after_statuses": [ls.status(s) for s in after],
+        "moving_statuses": [ls.status(s) for s in moving],
+        "moving_errors": [ls.error(s) for s in moving],
+        "frames": len(ls.log),
+    }
