@@ -24,9 +24,10 @@ from ptz_selfcal.core.geometry import (
     ptz_rotation,
 )
 from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.lens_correction import LensCorrection
+from ptz_selfcal.core.lens_correction import LensCorrection, SessionLensHook
 
 W, H = 1280, 720
+H_IMG = H
 PP = np.array([654.5, 349.5])  # principal point = distortion centre, off the image centre
 F_WIDE = 1108.0
 # keyframes: (pan deg, tilt deg, zoom)
@@ -189,3 +190,70 @@ def test_nothing_before_the_first_estimate_and_bad_matches_refused() -> None:
     assert not lens.add_match(1, 0, np.zeros((5, 2)), np.zeros((5, 2)))
     assert not lens.add_match(1, 0, np.full((20, 2), np.nan), np.zeros((20, 2)))
     assert not lens.update()  # nothing pending
+
+
+class _StubKeyframe:
+    def __init__(self, k: int) -> None:
+        self.keyframe_id, self.K, self.H = k, camera(k)[0], None
+
+
+class _StubCalibrator:
+    """The calibrated keyframes (true K) a session would hold."""
+
+    calibrated = True
+
+    def __init__(self) -> None:
+        self.reference_K = camera(0)[0]
+        self.keyframes: list[_StubKeyframe] = []
+
+    def frame_intrinsics(self, H):
+        raise ValueError("not needed: every keyframe is solved")
+
+
+class _StubSession:
+    """What SessionLensHook uses of core/calibration_state.CalibratorSession."""
+
+    def __init__(self) -> None:
+        self.calibrator = _StubCalibrator()
+        self.matches: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]] = []
+
+    def add_keyframe_matches(self, i, j, a, b, H=None) -> bool:
+        self.matches.append((i, j, a, b, H))
+        return True
+
+
+def test_session_hook_holds_keyframes_until_the_first_estimate_then_corrects() -> None:
+    # the calibration's principal point as the distortion centre (here exact)
+    hook = SessionLensHook(lambda width: F_WIDE, centre_from_calibration=True)
+    session = _StubSession()
+    _, state = hook.frame(np.eye(3), "NEW_KEYFRAME", 0, "ref", W, H_IMG)
+    assert state == "NEW_KEYFRAME"  # the reference keyframe passes
+    H_raw = np.eye(3)
+    errs = []
+    for k in range(1, len(POSES)):
+        H_raw = tracked_H(k, k - 1, lam_issue) @ H_raw
+        session.calibrator.keyframes.append(_StubKeyframe(k))
+        if k < 3:  # before the first estimate: uncorrected, held back as a plain frame
+            out, state = hook.frame(H_raw, "NEW_KEYFRAME", k, "ref", W, H_IMG)
+            assert state == "TRACKING" and np.allclose(out, H_raw)
+        else:
+            out, state = hook.frame(H_raw, "NEW_KEYFRAME", k, "ref", W, H_IMG)
+            assert state == "NEW_KEYFRAME"
+            errs.append((transfer_rms(out, true_H(k)), transfer_rms(H_raw, true_H(k))))
+        for j in {k - 1, max(k - 2, 0)}:
+            hook.matches(k, j, *matches(k, j, lam_issue))
+        assert hook.work(session) == (k >= 2)  # the first estimate needs two keyframe matches
+        assert not hook.work(session)  # nothing new: no work
+    assert hook.held_keyframes == 2
+    # NEW_KEYFRAME frames: the previous keyframe's chain and a refit over one keyframe step (large
+    # here: 10-15% zoom per keyframe), then replaced by their own chains in the session
+    for corrected, raw in errs:
+        assert corrected < 0.1 * raw, errs
+    for kf in session.calibrator.keyframes:
+        assert transfer_rms(kf.H, true_H(kf.keyframe_id)) < 0.1
+    # the bundle adjustment's matches arrive on corrected coordinates
+    i, j, a, _, link = session.matches[-1]
+    assert link is not None and transfer_rms(link, true_H(i, j)) < 0.1
+    assert not np.allclose(a, matches(i, j, lam_issue)[0])
+    D = hook.distortion(intrinsic_matrix(F_WIDE, *PP))
+    assert D[0] < -0.1

@@ -40,6 +40,7 @@ Pure: numpy + the core modules, no rclpy. Not thread-safe by itself: `update` bu
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections import OrderedDict, deque
@@ -60,6 +61,17 @@ from ptz_selfcal.core.homography import estimate_homography
 from ptz_selfcal.core.intrinsics import SelfCalibrationError
 
 Array = NDArray[np.float64]
+
+
+def zoom_ratio(H: ArrayLike) -> float:
+    """f_j / f_i of a homography K_j R K_i^-1 between nearby views: sqrt(det) of its affine part
+    (exact for R about the optical axis or small; a first-order estimate otherwise)."""
+    H = np.asarray(H, dtype=float)
+    if H[2, 2] == 0.0:
+        return math.nan
+    A = H[:2, :2] / H[2, 2] - np.outer(H[:2, 2], H[2, :2]) / H[2, 2] ** 2
+    det = float(np.linalg.det(A))
+    return math.sqrt(det) if det > 0.0 else math.nan
 
 
 @dataclass
@@ -99,6 +111,7 @@ class LensSnapshot:
 @dataclass
 class LensCorrectionStats:
     updates: int = 0
+    solves: int = 0
     failures: int = 0
     links: int = 0
     chained: int = 0  # live keyframes with a corrected chain after the last update
@@ -118,6 +131,7 @@ class LensCorrection:
         max_points_per_match: int = 120,
         max_keyframes: int = 512,
         min_matches: int = 2,
+        solve_every: int = 4,
         plumb_bob_cache: int = 512,
         seed: int = 0,
     ) -> None:
@@ -125,6 +139,7 @@ class LensCorrection:
         self.nominal_focal = float(nominal_focal)
         self.centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
         self.min_matches = int(min_matches)
+        self.solve_every = max(int(solve_every), 1)
         self.max_keyframes = int(max_keyframes)
         self.estimator = KeyframeDistortionEstimator(
             width, height, max_matches=max_matches, max_points_per_match=max_points_per_match, seed=seed
@@ -135,7 +150,9 @@ class LensCorrection:
         self._centre: dict[int, Array] = {}
         self._H_chain: OrderedDict[int, Array] = OrderedDict()  # corrected chains (kept when retired)
         self._H_raw: OrderedDict[int, Array] = OrderedDict()  # keyframe -> tracked H reference -> keyframe
-        self._new_matches = 0
+        self._link_H: dict[int, tuple[tuple[float, ...], Array]] = {}  # child -> (inputs, corrected link H)
+        self._new_matches = 0  # since the last joint solve
+        self._unchained = 0  # since the last chaining
         self._plumb_bob: OrderedDict[tuple[float, float, float, float], tuple[float, float]] = OrderedDict()
         self._plumb_bob_size = int(plumb_bob_cache)
         self.snapshot: LensSnapshot | None = None
@@ -199,52 +216,54 @@ class LensCorrection:
             while len(self._links) > self.max_keyframes:
                 self._links.popitem(last=False)
         self._new_matches += 1
+        self._unchained += 1
         return True
 
     @property
     def pending(self) -> int:
         """Matches received since the last update."""
-        return self._new_matches
+        return self._unchained
 
     # ---- worker ------------------------------------------------------------------------------------
     def update(self, force: bool = False) -> bool:
-        """Re-estimate distortion and the corrected keyframe chains; True when the snapshot changed."""
-        if self._new_matches == 0 and not force:
+        """Re-estimate distortion and the corrected keyframe chains; True when the snapshot changed.
+
+        The joint estimation (the expensive part, ~0.1-1 s) runs on the first call and then once every
+        `solve_every` new matches (or when forced); in between only the new links are chained with the
+        current estimates (new keyframes take lam from the curve), a few milliseconds, so a worker that
+        falls behind never leaves new keyframes without a corrected homography.
+        """
+        if self._unchained == 0 and not force:
             return False
         start = time.perf_counter()
-        try:
-            result = self.estimator.solve(min_matches=self.min_matches)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            self.stats.failures += 1
-            self.stats.messages = [*self.stats.messages[-9:], f"distortion solve failed: {exc}"]
-            return False
-        if result is None:
-            return False
-        self._new_matches = 0
-        kappa: dict[int, float] = {}
-        for kid, f in self._focal.items():
-            lam = self.estimator.lam(kid)
-            if lam is not None and math.isfinite(lam):
-                kappa[kid] = lam / (f * f)
-        curve = DistortionVsFocal.from_dict(self.estimator.curve.to_dict())
-        snap = LensSnapshot(
-            kappa=kappa,
-            centre=dict(self._centre),
-            focal=dict(self._focal),
-            H={},
-            curve=curve,
-            rms_px=float(result.rms),
-            rms_uncorrected_px=float(result.rms_undistorted_model),
-        )
+        prev = self.snapshot
+        solve = force or prev is None or self._new_matches >= self.solve_every
+        if solve:
+            try:
+                result = self.estimator.solve(min_matches=self.min_matches)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                self.stats.failures += 1
+                self.stats.messages = [*self.stats.messages[-9:], f"distortion solve failed: {exc}"]
+                return False
+            if result is None:
+                return False
+            self._new_matches = 0
+            kappa: dict[int, float] = {}
+            for kid, f in self._focal.items():
+                lam = self.estimator.lam(kid)
+                if lam is not None and math.isfinite(lam):
+                    kappa[kid] = lam / (f * f)
+            curve = DistortionVsFocal.from_dict(self.estimator.curve.to_dict())
+            rms, rms0 = float(result.rms), float(result.rms_undistorted_model)
+            self.stats.solves += 1
+        else:
+            assert prev is not None
+            kappa, curve, rms, rms0 = dict(prev.kappa), prev.curve, prev.rms_px, prev.rms_uncorrected_px
+        self._unchained = 0
+        snap = LensSnapshot(kappa, dict(self._centre), dict(self._focal), {}, curve, rms, rms0)
         self._rechain(snap)
         self.snapshot = LensSnapshot(
-            snap.kappa,
-            snap.centre,
-            snap.focal,
-            dict(self._H_chain),
-            curve,
-            snap.rms_px,
-            snap.rms_uncorrected_px,
+            snap.kappa, snap.centre, snap.focal, dict(self._H_chain), curve, rms, rms0
         )
         self.stats.updates += 1
         self.stats.links = len(self._links)
@@ -252,11 +271,36 @@ class LensCorrection:
         return True
 
     def _kappa_for(self, snap: LensSnapshot, kid: int) -> tuple[float, Array]:
+        """A keyframe's pixel-space coefficient: its estimate, else its nearest estimated ancestor's
+        carried over the zoom change between them (consecutive keyframes differ little in zoom; a new
+        keyframe's focal length may still be the nominal one, which would misplace it on the curve),
+        else the curve."""
         kappa = snap.kappa.get(kid)
-        f = self._focal.get(kid, self.nominal_focal)
+        ancestor, steps = kid, 0
+        while kappa is None and ancestor in self._links and steps < 16:
+            ancestor, steps = self._links[ancestor].parent, steps + 1
+            kappa = snap.kappa.get(ancestor)
+            if kappa is not None and kid in self._H_raw and ancestor in self._H_raw:
+                ratio = zoom_ratio(self._H_raw[kid] @ np.linalg.inv(self._H_raw[ancestor]))
+                kappa = self._carry(snap, kappa, ancestor, ratio)
         if kappa is None:
+            f = self._focal.get(kid, self.nominal_focal)
             kappa = snap.lam_at(f) / (f * f)
         return kappa, self._centre.get(kid, self.centre0)
+
+    def _carry(self, snap: LensSnapshot, kappa: float, kid: int, ratio: float) -> float:
+        """kappa of keyframe `kid` carried to a view zoomed by `ratio` (f_new / f_kid): the lam(f)
+        curve's relative change when it is fitted, else distortion shrinking as 1/f (kappa ~ 1/f)."""
+        if not (math.isfinite(ratio) and ratio > 0.0) or abs(ratio - 1.0) < 1e-4:
+            return kappa
+        f = self._focal.get(kid, self.nominal_focal)
+        span = snap.curve.f_range
+        if span is not None and span[1] > 1.05 * span[0]:  # a curve over focal lengths actually seen
+            k0 = snap.lam_at(f) / (f * f)
+            k1 = snap.lam_at(f * ratio) / (f * ratio) ** 2
+            if k0 != 0.0 and math.isfinite(k1 / k0) and 0.0 < k1 / k0 < 10.0:
+                return kappa * k1 / k0
+        return kappa / ratio
 
     def undistort(self, snap: LensSnapshot, kid: int, pts: Array) -> Array:
         kappa, c = self._kappa_for(snap, kid)
@@ -280,10 +324,17 @@ class LensCorrection:
             parent_H = chain.get(link.parent)
             if parent_H is None:
                 continue
+            key = (link.parent, *self._kappa_for(snap, link.parent)[0:1], *self._kappa_for(snap, child)[0:1])
+            key = (*key, *self._centre.get(child, self.centre0), *self._centre.get(link.parent, self.centre0))
+            cached = self._link_H.get(child)
             try:
-                src = self.undistort(snap, link.parent, link.parent_pts)
-                dst = self.undistort(snap, child, link.pts)
-                H_link = estimate_homography(src, dst)  # parent -> child, corrected pixels
+                if cached is not None and cached[0] == key:
+                    H_link = cached[1]
+                else:
+                    src = self.undistort(snap, link.parent, link.parent_pts)
+                    dst = self.undistort(snap, child, link.pts)
+                    H_link = estimate_homography(src, dst)  # parent -> child, corrected pixels
+                    self._link_H[child] = (key, H_link)
                 H = normalise_homography(H_link @ parent_H)
             except (ValueError, np.linalg.LinAlgError):
                 continue
@@ -298,6 +349,8 @@ class LensCorrection:
                 continue
             chain.popitem(last=False)
         self.stats.chained = chained
+        for kid in [k for k in self._link_H if k not in self._links]:
+            del self._link_H[kid]
 
     # ---- frame thread ------------------------------------------------------------------------------
     def ready(self) -> bool:
@@ -333,15 +386,15 @@ class LensCorrection:
         H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[base])
         kappa, c = self._kappa_for(snap, base)
         if kappa != 0.0:
-            kappa_j = kappa
+            kappa_j = self._carry(snap, kappa, base, zoom_ratio(H_local))
             if f_frame is not None and math.isfinite(f_frame) and f_frame > 0 and snap.curve.fitted():
                 kappa_j = snap.lam_at(f_frame) / (f_frame * f_frame)
-            try:
+            # too little overlap for the grid refit (a worker far behind): the uncorrected local part
+            # (first-order error over a short span; the keyframe gets its chain at the next update)
+            with contextlib.suppress(ValueError, np.linalg.LinAlgError):
                 H_local = undistorted_homography(
                     H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
                 )
-            except (ValueError, np.linalg.LinAlgError):
-                return None
         return normalise_homography(H_local @ snap.H[base])
 
     def undistort_points(self, keyframe_id: int, pts: ArrayLike) -> Array:
