@@ -185,6 +185,27 @@ def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:
             )
         finally:
             feeder.close()
+    with domain() as env, graph(env, work):
+        feeder = rh.Feeder("bench_zoom_preset")
+        try:
+            feeder.wait_connected()
+            z = rh.zoom_preset_scenario(feeder, 640, 360)
+            counts: dict[str, int] = {}
+            for s in z["moving_statuses"]:
+                counts[s] = counts.get(s, 0) + 1
+            after: dict[str, int] = {}
+            for s in z["after_statuses"]:
+                after[s] = after.get(s, 0) + 1
+            ok = z["after"] <= 1.1 * z["before"] + rh.SLACK
+            lines += [
+                "   sharp preset recall panning 9 deg/frame while zooming 1x -> 2.5x (past the learned zoom "
+                f"range), hold, back: {len(z['moving_statuses'])} frames moving {counts}, focal error while "
+                f"moving max {100 * max(z['moving_errors']):.1f} %;",
+                f"   window before {100 * z['before']:.4f} %, after {100 * z['after']:.4f} % "
+                f"({'ok' if ok else 'NOT ok: calibration corrupted'}); statuses after {after}",
+            ]
+        finally:
+            feeder.close()
 
 
 def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> None:
