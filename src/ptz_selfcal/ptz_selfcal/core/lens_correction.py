@@ -150,6 +150,7 @@ class LensCorrection:
         self._centre: dict[int, Array] = {}
         self._H_chain: OrderedDict[int, Array] = OrderedDict()  # corrected chains (kept when retired)
         self._H_raw: OrderedDict[int, Array] = OrderedDict()  # keyframe -> tracked H reference -> keyframe
+        self._kappa_known: OrderedDict[int, float] = OrderedDict()  # keyframe -> last estimated kappa
         self._link_H: dict[int, tuple[tuple[float, ...], Array]] = {}  # child -> (inputs, corrected link H)
         self._new_matches = 0  # since the last joint solve
         self._unchained = 0  # since the last chaining
@@ -248,11 +249,16 @@ class LensCorrection:
             if result is None:
                 return False
             self._new_matches = 0
-            kappa: dict[int, float] = {}
+            # keyframes whose matches left the estimator's bounded window keep their last estimate
+            known = self._kappa_known
             for kid, f in self._focal.items():
                 lam = self.estimator.lam(kid)
                 if lam is not None and math.isfinite(lam):
-                    kappa[kid] = lam / (f * f)
+                    known[kid] = lam / (f * f)
+                    known.move_to_end(kid)
+            while len(known) > self.max_keyframes:
+                known.popitem(last=False)
+            kappa: dict[int, float] = dict(known)
             curve = DistortionVsFocal.from_dict(self.estimator.curve.to_dict())
             rms, rms0 = float(result.rms), float(result.rms_undistorted_model)
             self.stats.solves += 1
