@@ -72,6 +72,8 @@ def test_install_space_has_node_executables_launch_and_config(colcon_install: Pa
         assert (lib / exe).exists(), f"{exe} missing from {lib}"
     share = colcon_install / "ptz_selfcal" / "share" / "ptz_selfcal"
     assert (share / "package.xml").exists()
+    assert (share / "launch" / "ptz_selfcal.launch.py").exists()
+    assert (share / "config" / "ptz_selfcal.yaml").exists()
     assert (
         colcon_install / "ptz_selfcal_msgs" / "share" / "ptz_selfcal_msgs" / "msg" / "FrameCalibration.msg"
     ).exists()

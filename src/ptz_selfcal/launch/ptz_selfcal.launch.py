@@ -2,27 +2,23 @@
     ros2 launch ptz_selfcal ptz_selfcal.launch.py [params_file:=FILE] [namespace:=/cam1]
 Here, without launch/launch_ros, `ptz-selfcal launch` does the same (tools/launch.py).
 
-The nodes are Python modules (`python3 -m ptz_selfcal.nodes.<name>`; the package installs no per-node
-executables), so each one is an ExecuteProcess with the usual --ros-args. The parameter file has one
-top-level key per node name (config/ptz_selfcal.yaml); it is rewritten with /**/<name> keys so that the
-sections apply under any namespace. Nodes that die are respawned.
+Each node is the package's executable of the same name (setup.py installs them into lib/ptz_selfcal,
+where `ros2 run ptz_selfcal <name>` finds them). The parameter file has one top-level key per node name
+(config/ptz_selfcal.yaml); it is rewritten with /**/<name> keys so that the sections apply under any
+namespace. Nodes that die are respawned.
 """
 
 import os
-import sys
 import tempfile
 
 import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
 
-NODES = (
-    ("frame_ingest", "ptz_selfcal.nodes.frame_ingest"),
-    ("homography_tracker", "ptz_selfcal.nodes.homography_tracker"),
-    ("calibrator", "ptz_selfcal.nodes.calibrator"),
-)
+NODES = ("frame_ingest", "homography_tracker", "calibrator")
 
 
 def _nodes(context, *args, **kwargs):
@@ -34,13 +30,19 @@ def _nodes(context, *args, **kwargs):
     handle, path = tempfile.mkstemp(prefix="ptz_selfcal_params_", suffix=".yaml")
     with os.fdopen(handle, "w") as stream:
         yaml.safe_dump(rewritten, stream)
-    actions = []
-    for name, module in NODES:
-        cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={name}", "--params-file", path]
-        if namespace:
-            cmd += ["-r", f"__ns:={namespace}"]
-        actions.append(ExecuteProcess(cmd=cmd, name=name, output="screen", respawn=True, respawn_delay=1.0))
-    return actions
+    return [
+        Node(
+            package="ptz_selfcal",
+            executable=name,
+            name=name,
+            namespace=namespace,
+            parameters=[path],
+            output="screen",
+            respawn=True,
+            respawn_delay=1.0,
+        )
+        for name in NODES
+    ]
 
 
 def generate_launch_description():
