@@ -105,7 +105,9 @@ class Sampler:
 
 def skipped_line(diag: dict[str, str]) -> str:
     kinds = {
-        k: v for k, v in diag.items() if k.startswith(("skipped_", "encoder_", "image_stamp", "dropped"))
+        k: v
+        for k, v in diag.items()
+        if k.startswith(("skipped_", "encoder_", "image_stamp", "dropped", "input_"))
     }
     kinds = {k: v for k, v in kinds.items() if k not in ("encoder_messages",) and v not in ("0", "0.0")}
     return ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"
@@ -234,7 +236,9 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> No
                 f"   frames in {r['sent']} ({r['rate']:.1f}/s), frames calibrated {r['calibrated']} "
                 f"({r['calibrated'] / r['elapsed']:.1f}/s), duplicates {r['duplicates']}",
                 f"   skipped and why: {shed_dds} shed by the latest-wins image queue before frame_ingest "
-                f"(frames_in {ingest['frames_in']}), {tracker.get('frames_dropped')} shed by the tracker's "
+                f"(frames_in {ingest['frames_in']}; frame_ingest's estimate from stamp gaps in /diagnostics: "
+                f"{ingest.get('input_frames_missing_estimate', 0)}), {tracker.get('frames_dropped')} shed by "
+                f"the tracker's "
                 f"latest-wins queue (homography_tracker frames_dropped in /diagnostics), "
                 f"{int(ingest['frames_out']) - int(tracker['frames_in']) - int(tracker['frames_dropped'])} "
                 "in flight/unaccounted",
