@@ -25,13 +25,13 @@ class CliError(Exception):
     """An expected user-facing failure: printed as one line, exit status 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ptz-selfcal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
         cmd = sub.add_parser(name, help=help_text, description=help_text)
         cmd.set_defaults(_module=module_name)
-        if name in sys.argv[1:2]:  # only the chosen command's module is imported
+        if name in (sys.argv[1:] if argv is None else argv)[:1]:  # only the chosen command's module
             importlib.import_module(module_name).add_arguments(cmd)
     return parser
 
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     # The command modules raise ptz_selfcal.tools.cli.CliError; under `python -m` this file is
     # __main__, a different module object, so catch the class of the importable module.
     cli_error = importlib.import_module("ptz_selfcal.tools.cli").CliError
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     module = importlib.import_module(args._module)
     try:
