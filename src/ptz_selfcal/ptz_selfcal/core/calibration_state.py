@@ -33,7 +33,6 @@ import dataclasses
 import logging
 import math
 import os
-import tempfile
 import threading
 import time
 from collections import OrderedDict, deque
@@ -45,6 +44,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from ptz_selfcal.core.atomic_file import atomic_write_text
 from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
 from ptz_selfcal.core.incremental import (
@@ -85,31 +85,8 @@ TRACKING_STATES_WITH_H = ("TRACKING", "NEW_KEYFRAME", "RELOCALISED")
 
 
 # --------------------------------------------------------------------------------------------------
-# Atomic files
+# State files
 # --------------------------------------------------------------------------------------------------
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
-    """Replace `path` with `text` atomically: temp file in the same directory, fsync, os.replace."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    with contextlib.suppress(OSError):  # make the rename itself durable
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-
-
 class StateFileError(Exception):
     """A state file that exists but cannot be used (corrupt, wrong version, wrong camera)."""
 

@@ -27,7 +27,6 @@ import glob
 import math
 import os
 import re
-import tempfile
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -39,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline
 from scipy.optimize import lsq_linear
 
+from ptz_selfcal.core.atomic_file import atomic_write_text
 from ptz_selfcal.core.geometry import intrinsic_matrix
 
 Array = NDArray[np.float64]
@@ -461,28 +461,6 @@ def _remove_stale_temporaries(path: Path, age_s: float = 60.0) -> None:
         with contextlib.suppress(OSError):
             if now - tmp.stat().st_mtime > age_s:
                 tmp.unlink()
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write text so that path holds either the old or the new content, whatever happens."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as stream:
-            stream.write(text)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    with contextlib.suppress(OSError):  # make the rename durable (not available on every platform)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
 
 
 def fit_zoom_model(
