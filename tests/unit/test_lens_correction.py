@@ -222,9 +222,10 @@ class _StubSession:
         return True
 
 
-def test_session_hook_holds_keyframes_until_the_first_estimate_then_corrects() -> None:
+@pytest.mark.parametrize("hold", [True, False])
+def test_session_hook_corrects_keyframes_frames_and_matches(hold: bool) -> None:
     # the calibration's principal point as the distortion centre (here exact)
-    hook = SessionLensHook(lambda width: F_WIDE, centre_from_calibration=True)
+    hook = SessionLensHook(lambda width: F_WIDE, centre_from_calibration=True, hold_keyframes=hold)
     session = _StubSession()
     _, state = hook.frame(np.eye(3), "NEW_KEYFRAME", 0, "ref", W, H_IMG)
     assert state == "NEW_KEYFRAME"  # the reference keyframe passes
@@ -233,9 +234,9 @@ def test_session_hook_holds_keyframes_until_the_first_estimate_then_corrects() -
     for k in range(1, len(POSES)):
         H_raw = tracked_H(k, k - 1, lam_issue) @ H_raw
         session.calibrator.keyframes.append(_StubKeyframe(k))
-        if k < 3:  # before the first estimate: uncorrected, held back as a plain frame
+        if k < 3:  # before the first estimate: uncorrected (held back as a plain frame if asked)
             out, state = hook.frame(H_raw, "NEW_KEYFRAME", k, "ref", W, H_IMG)
-            assert state == "TRACKING" and np.allclose(out, H_raw)
+            assert state == ("TRACKING" if hold else "NEW_KEYFRAME") and np.allclose(out, H_raw)
         else:
             out, state = hook.frame(H_raw, "NEW_KEYFRAME", k, "ref", W, H_IMG)
             assert state == "NEW_KEYFRAME"
@@ -244,7 +245,7 @@ def test_session_hook_holds_keyframes_until_the_first_estimate_then_corrects() -
             hook.matches(k, j, *matches(k, j, lam_issue))
         assert hook.work(session) == (k >= 2)  # the first estimate needs two keyframe matches
         assert not hook.work(session)  # nothing new: no work
-    assert hook.held_keyframes == 2
+    assert hook.held_keyframes == (2 if hold else 0)
     # NEW_KEYFRAME frames: the previous keyframe's chain and a refit over one keyframe step (large
     # here: 10-15% zoom per keyframe), then replaced by their own chains in the session
     for corrected, raw in errs:
