@@ -390,6 +390,10 @@ def _finite_or(value: float, default: float) -> float:
 
 
 def main(args: list[str] | None = None) -> int:
+    # The re-optimisation worker holds the GIL in Python-level stretches of its solves; a frame's
+    # callback waits up to the switch interval at every hand-over (5 ms by default, several per frame).
+    # 1 ms bounds what the worker adds to a frame's latency at a small cost in the worker's throughput.
+    sys.setswitchinterval(0.001)
     try:
         return run_node(CalibratorNode, args)
     except ConfigError as exc:
