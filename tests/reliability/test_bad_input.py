@@ -86,6 +86,9 @@ def test_graph_survives_the_catalogue_and_calibrates_every_good_frame(ros_env, s
         assert found == expected, d
         assert int(d["skipped_total"]) == len(refused) + 1
         assert int(d["frames_in"]) == len(good) + len(refused) + 1
+        # nothing was lost on the way in: the estimate of missing input frames (from stamp gaps) must stay
+        # small, also after one image with a stamp 10 years ahead (a jump, not 9.5e9 missing frames)
+        assert int(d.get("input_frames_missing_estimate", 0)) < len(good), d
         assert int(feeder.diagnostics["homography_tracker"]["frames_out"]) == len(good)
         for name, proc in procs.items():
             assert proc.alive(), f"{name} died:\n{proc.output()[-3000:]}"
