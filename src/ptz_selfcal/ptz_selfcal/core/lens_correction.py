@@ -20,19 +20,30 @@ links from the reference, gives 0.7 px and f within 0.1% (benchmarks/distortion.
   Before any calibration a prior (nominal focal length) is good enough: the images constrain the
   pixel-space coefficient kappa = lam / f^2 about the distortion centre, which does not depend on f;
   f only places a keyframe on the lam(f) curve, refined as the calibration converges.
-- `update()` (worker thread, only when new matches arrived): re-estimate distortion, then recompute
-  the corrected homography reference -> keyframe of every live keyframe by chaining its corrected link
-  homographies (DLT + LM on undistorted inliers). Cost: one joint solve over at most `max_matches`
-  matches plus one small homography fit per live link; nothing per frame.
+- `update()` (worker thread, only when new matches arrived): every `solve_every` matches the joint
+  estimation (one solve over at most `max_matches` matches, ~0.1-0.4 s), in between only the new
+  links are chained with the current estimates (milliseconds); the corrected homography reference ->
+  keyframe of every keyframe is its chain of corrected links (DLT + LM on undistorted inliers, cached
+  per link until its coefficients change). Keyframes that left the estimator's window keep their last
+  estimate; new ones take their ancestor's, carried over the zoom ratio. Nothing runs per frame.
 - Per frame (`frame_homography`): the corrected H reference -> frame is the frame's short
-  keyframe -> frame homography (tracked on distorted points, corrected by a grid refit: frame and
-  keyframe are a few frames apart, so the distortion nearly cancels and the refit error is second
-  order) composed with the keyframe's corrected chain. O(1): one 8x8-grid refit.
+  keyframe -> frame homography (tracked on distorted points, corrected by an 8x8-grid refit) composed
+  with the keyframe's corrected chain. Measured on the issue-6 bag (benchmarks/distortion.py): without
+  the refit the focal p90 is 3.3% instead of 1.3% (median unchanged, 0.6%), so the per-frame K does
+  need it; its error is second order (0.45 px for a frame 1 deg and 3% zoom from its keyframe,
+  tests/unit/test_lens_correction.py) and it costs ~1 ms.
 - `plumb_bob(K)`: D = [k1, k2, 0, 0, 0] of lam(f) at the frame's focal length for CameraInfo
   (distortion.division_to_plumb_bob, consistent with K: OpenCV undistortion with (K, D) reproduces the
-  division model); cached by (lam, f) so a steady zoom costs a dictionary lookup.
-- `undistort_points(id, pts, centre)`: keyframe matches on corrected coordinates for the bundle
-  adjustment (section 5).
+  division model); cached by (lam, f, principal point) so a steady zoom costs a dictionary lookup.
+- `undistort_points(id, pts)`: keyframe matches on corrected coordinates for the bundle adjustment
+  (section 5).
+
+Known limit: the distortion centre. In rotation-only data it is nearly interchangeable with the
+principal point (self-calibration's principal point follows the assumed centre almost one to one, the
+pair residuals do not see it), and feeding the calibrated principal point back as the centre diverges
+(-210 px). The centre therefore stays at the image centre (`SessionLensHook.centre_from_calibration`
+off): on the issue-6 bag, whose principal point is 18 px off centre, the principal point error stays
+~20 px and the focal error ~0.6% (with the true centre the same chains give 0.08%).
 
 Pure: numpy + the core modules, no rclpy. Not thread-safe by itself: `update` builds a new immutable
 `LensSnapshot` and swaps it in one assignment, so a frame thread may read `snapshot` concurrently.
@@ -492,7 +503,7 @@ class SessionLensHook:
       matches to the session on corrected coordinates (the bundle adjustment's observations) with the
       corrected link homographies.
     - `distortion(K)` (frame callback): plumb_bob D for the frame's K.
-    The session must run without its own distortion handling (SessionConfig.estimate_distortion off).
+    The session gets D through its `distortion_model` seam (the node plugs `distortion` into it).
     """
 
     def __init__(
