@@ -883,7 +883,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--inputs", default=",".join([*SYNTH, *REAL]), help="comma-separated input names")
     parser.add_argument("--features", default="sift", choices=("sift", "orb"), help="OpenCV feature finder")
     parser.add_argument("--out", type=Path, default=None, help=f"write the table here (full run: {RESULTS})")
+    parser.add_argument(
+        "--merge", type=Path, nargs="+", help="merge reports of runs made in parallel into one"
+    )
     args = parser.parse_args(argv)
+    if args.merge:
+        return write_text(merge_reports([p.read_text() for p in args.merge]), args.out)
     names = [n.strip() for n in args.inputs.split(",") if n.strip()]
     unknown = [n for n in names if n not in SYNTH and n not in REAL]
     if unknown:
@@ -899,12 +904,39 @@ def main(argv: list[str] | None = None) -> int:
             seq = load_input(name, args.quick, Path(tmp))
             sources.append(f"{name}: {seq.source}, {len(seq.frames)} frames {seq.size[0]}x{seq.size[1]}")
             rows += run_input(seq, args.features, log)
-    text = report(rows, sources, args)
+    return write_text(report(rows, sources, args), args.out)
+
+
+def write_text(text: str, out: Path | None) -> int:
     print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
     return 0
+
+
+def _sections(text: str) -> list[list[str]]:
+    """A report's blank-line separated blocks: command+sources, table, targets, note."""
+    blocks: list[list[str]] = [[]]
+    for line in text.rstrip("\n").splitlines():
+        if line:
+            blocks[-1].append(line)
+        else:
+            blocks.append([])
+    return blocks
+
+
+def merge_reports(texts: list[str]) -> str:
+    """One table from the reports of several runs (each run's command is kept)."""
+    parts = [_sections(t) for t in texts]
+    commands = [line for p in parts for line in p[0] if line.startswith("$ ")]
+    explanation = parts[0][0][len([ln for ln in parts[0][0] if ln.startswith("$ ")])]
+    sources = [line for p in parts for line in p[0][1:] if not line.startswith("$ ") and line != explanation]
+    rows = [line for p in parts for line in p[1][1:]]
+    targets = [line for p in parts for line in p[2]]
+    return "\n".join(
+        [*commands, explanation, *sources, "", HEADER, *rows, "", *targets, "", opencv_peer.PORT_NOTE]
+    )
 
 
 def report(rows: list[Row], sources: list[str], args: argparse.Namespace) -> str:
