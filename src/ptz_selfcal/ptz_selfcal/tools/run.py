@@ -191,11 +191,14 @@ def run(args: argparse.Namespace) -> int:
         diag_remap = ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
         # Run-mode overrides (after the params file, so they win): lossless, reliable, the bag's image
         # topic, and outputs held until the next stage (and the recorder where it listens) is matched.
+        # Lock-step replay has no latency budget, so a frame may wait longer for its bracketing encoder
+        # sample than live (on a loaded machine the 0.2 s default expired and left encoders invalid).
         ingest_args = {
             "sensor_reliability": "reliable",
             "queue_policy": "lossless",
             "input": input_kind,
             "wait_for_subscribers": 2 if args.record_frames else 1,
+            "encoder_wait": 1.0,
         }
         tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
         specs = [
