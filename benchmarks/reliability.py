@@ -337,10 +337,15 @@ def restarts(domain: Domain, work: Path, lines: list[str]) -> None:
                 counts: dict[str, int] = {}
                 for s in r["statuses"]:
                     counts[s] = counts.get(s, 0) + 1
+                recover = "never" if r["recover_s"] is None else f"{r['recover_s']:.2f}"
                 lines.append(
                     f"   {victim:<20} {r['frames']:>9} {r['calibrated']:>10} {r['lost']:>5} "
                     f"{len(r['worse']):>6} "
-                    f"{100 * r['before']:>14.4f} {100 * r['after']:>8.4f} {r['recover_s']:>9.2f}  {counts}"
+                    f"{100 * r['before']:>14.4f} {100 * r['after']:>8.4f} {recover:>9}  {counts}"
+                )
+            except Exception as exc:  # one victim's failure must not hide the others'
+                lines.append(
+                    f"   {victim:<20} FAILED: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
                 )
             finally:
                 feeder.close()
