@@ -287,10 +287,17 @@ def report(res: Result, lines: list[str]) -> None:
     tracker = res.diagnostics.get("homography_tracker", {})
     shed_dds = n - int(ingest.get("frames_in", 0) or 0)
     shed_tracker = int(tracker.get("frames_dropped", 0) or 0)
+    calib = res.diagnostics.get("calibrator", {})
     lines.append(
         f"  frames published {n}, calibrated {calibrated} ({100.0 * calibrated / max(n, 1):.1f}%), dropped "
         f"{n - calibrated} (not received by frame_ingest {shed_dds}, shed by the tracker's queue "
         f"{shed_tracker}); unmatched CameraInfo {res.unmatched}"
+    )
+    lines.append(
+        f"  per stage (last /diagnostics): frame_ingest in {ingest.get('frames_in', '?')} out "
+        f"{ingest.get('frames_out', '?')}, homography_tracker in {tracker.get('frames_in', '?')} out "
+        f"{tracker.get('frames_out', '?')}, calibrator in {calib.get('homographies_in', '?')} out "
+        f"{calib.get('camera_info_out', '?')}"
     )
     if len(lat) >= 6:
         third = max(1, len(lat) // 3)
@@ -300,7 +307,14 @@ def report(res: Result, lines: list[str]) -> None:
         lines.append(
             f"  growth: first third p50 {pct(first, 50):.1f} / p95 {pct(first, 95):.1f} ms, last third p50 "
             f"{pct(last, 50):.1f} / p95 {pct(last, 95):.1f} ms, slope {slope:+.1f} ms per s -> "
-            f"{'GROWS (a queue builds up)' if grows else 'flat (no queue grows)'}"
+            f"{'latency GROWS' if grows else 'flat'}"
+            + (
+                f" (queue depth {res.depth}: none can grow; latency follows the CPU left to the nodes)"
+                if res.policy == "latest" and grows
+                else " (a lossless queue builds up)"
+                if grows
+                else ""
+            )
         )
     late = np.asarray(res.play_late_ms)
     lines.append(
@@ -385,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
                     messages, image_type, image_topic, policy, args.depth, sub, args.rate, extra, args.nice
                 )
                 report(res, lines)
-                print("\n".join(lines[-9:]), flush=True)
+                print("\n".join(lines[-10:]), flush=True)
     lines.append(f"# load average at the end {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     text = "\n".join(lines) + "\n"
     print(text)
