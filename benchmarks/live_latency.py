@@ -59,6 +59,20 @@ def peak_rss_mb(pid: int) -> float:
     return math.nan
 
 
+def _autogroup_nice(pid: int) -> int | None:
+    try:  # "/autogroup-570 nice 0"
+        return int(Path(f"/proc/{pid}/autogroup").read_text().split()[-1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _set_autogroup_nice(pid: int, nice: int) -> None:
+    try:
+        Path(f"/proc/{pid}/autogroup").write_text(str(nice))
+    except OSError as exc:
+        print(f"live_latency: cannot set the autogroup nice of {pid}: {exc}", file=sys.stderr)
+
+
 def render_bag(work: Path) -> Path:
     from ptz_selfcal.tools import synth
 
@@ -128,6 +142,7 @@ def measure(
     from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, prepare
 
     res = Result(policy, depth, nice=nice)
+    own_group: int | None = None
     namespace = f"/live_latency_{os.getpid()}_{policy}"
     params_file, namespace, _ = prepare(None, namespace, [], str(domain_tmp))
     compressed = image_type == "sensor_msgs/msg/CompressedImage"
@@ -187,9 +202,6 @@ def measure(
     ns = namespace
     try:
         supervisor.start()
-        if nice is not None:  # the node processes (and this player) ahead of the machine's other work
-            for pid in [0, *supervisor.pids().values()]:
-                os.setpriority(os.PRIO_PROCESS, pid, nice)
         deadline = time.monotonic() + 60.0
         checks = [
             lambda: image_pub.get_subscription_count() > 0,
@@ -230,6 +242,16 @@ def measure(
                     joint_pub.publish(raw)
             done.set()
 
+        if nice is not None:
+            # Every thread of the nodes and of this process ahead of the machine's other work. With the
+            # kernel's autogroups (each session, e.g. each node started with start_new_session, shares
+            # CPU equally with every other session) a thread's nice only ranks it inside its session:
+            # the session's /proc/PID/autogroup nice ranks it against the others.
+            own_group = _autogroup_nice(os.getpid())
+            for pid in [os.getpid(), *supervisor.pids().values()]:
+                _set_autogroup_nice(pid, nice)
+                for task in Path(f"/proc/{pid}/task").iterdir():
+                    os.setpriority(os.PRIO_PROCESS, int(task.name), nice)
         start_cpu = supervisor.cpu_seconds()
         res.load = os.getloadavg()
         t0 = time.monotonic()
@@ -252,6 +274,9 @@ def measure(
         res.cpu = {k: v - start_cpu.get(k, 0.0) for k, v in cpu.items()}
         res.peak_rss = {name: peak_rss_mb(pid) for name, pid in supervisor.pids().items()}
     finally:
+        if nice is not None and own_group is not None:
+            _set_autogroup_nice(os.getpid(), own_group)
+            os.setpriority(os.PRIO_PROCESS, 0, 0)
         supervisor.stop()
         executor.shutdown()
         node.destroy_node()
