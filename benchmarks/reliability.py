@@ -352,7 +352,7 @@ def restarts(domain: Domain, work: Path, lines: list[str]) -> None:
                 launch.stop(timeout=30.0)
     lines.append(
         "   (lost: frames sent while the killed node's DDS endpoints were still matched; worse: frames "
-        "with focal error > 1.1 x the worst before the kill + 0.02 %; recover: kill -> first CameraInfo)"
+        "with focal error > 1.1 x the worst before the kill + 0.05 %; recover: kill -> first CameraInfo)"
     )
 
 

@@ -747,6 +747,7 @@ def bad_input_catalogue(feeder: Feeder, width: int, height: int, n: int = 60):
 
 
 SLACK = 2e-4  # absolute slack on focal error comparisons (0.02 %: per-frame tracking noise)
+RESTART_SLACK = 5e-4
 
 
 def started(output: str) -> dict[str, list[int]]:
@@ -780,7 +781,10 @@ def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: s
     # the saved state holds this calibration before the kill
     assert feeder.spin(10.0, lambda: feeder.counter("calibrator", "state_saves") >= 2)
     time.sleep(0.8)
-    threshold = 1.1 * max(ls.error(s) for s in before) + SLACK
+    # + 0.05 %: the calibration keeps re-optimising beside the frames and drifts by a few 0.01 % between
+    # passes over the same views (measured 0.016 -> 0.075 % in benchmarks/reliability.py, section 2); a
+    # calibration lost in the restart is off by 0.1 % (zoom model) to 10 % (nominal)
+    threshold = 1.1 * max(ls.error(s) for s in before) + RESTART_SLACK
     pid = started(launch_output())[victim][-1]
     os.kill(pid, signal.SIGKILL)
     killed = time.monotonic()
