@@ -147,3 +147,20 @@ def test_wrong_parameter_type_stops_the_suite_with_the_node_message(launch_env, 
     assert "frame_ingest exited with status 2 at start-up" in out and "working_width" in out, out
     for pid in (p for v in started_pids(out).values() for p in v):
         assert gone(pid)
+
+
+def test_nice_applies_to_every_node_thread_and_session(launch_env, start_process):
+    env, extra = launch_env
+    proc = start_process(cli_command("launch", "--namespace", "/cam8", "--nice", "7", *extra), env, "launch")
+    pids = wait_started(proc, 3)
+    nodes, _ = graph_nodes("/cam8", 20.0)  # up and running: their DDS and executor threads exist now
+    assert set(NODES) <= nodes, proc.output()
+    for name, (pid,) in pids.items():
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+        assert len(tasks) > 1
+        for task in tasks:  # field 19 of stat is the nice value (after the parenthesised command name)
+            assert int((task / "stat").read_text().rsplit(")", 1)[1].split()[16]) == 7, (name, task.name)
+        autogroup = Path(f"/proc/{pid}/autogroup")
+        if autogroup.exists():
+            assert autogroup.read_text().split()[-1] == "7", (name, autogroup.read_text())
+    assert proc.stop(timeout=20.0) == 0, proc.output()
