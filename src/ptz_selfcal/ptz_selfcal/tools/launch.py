@@ -266,8 +266,9 @@ class Supervisor:
     def _prioritise(self, pid: int) -> None:
         """Niceness of a just-started node: of its session's autogroup (with the kernel's autogroups every
         session shares the CPU equally, and each node has its own session) and of its main thread (the
-        threads it starts inherit it). Measured (benchmarks/live_latency.py, load 11 on 2 CPUs): -10
-        brings the live 30 fps p95 latency from 84-558 ms to 37-49 ms."""
+        threads it starts inherit it). Measured (benchmarks/live_latency.py, load 11-13 on 2 CPUs): -10
+        brought the live 30 fps p95 latency from 84-558 ms (4 runs) to 37-49 ms in 5 of 6 runs (136 ms in
+        one)."""
         with contextlib.suppress(OSError):  # no autogroups on this kernel: the thread nice still applies
             Path(f"/proc/{pid}/autogroup").write_text(str(self.nice))
         try:
