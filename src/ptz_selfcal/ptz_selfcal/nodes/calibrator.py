@@ -51,7 +51,7 @@ from ptz_selfcal.nodes.conversions import (
     one_of,
     stamp_to_sec,
 )
-from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches
 
 PARAMS = [
@@ -179,7 +179,7 @@ class CalibratorNode(Node):
             (self.get_logger().warning if line.startswith("WARNING") else self.get_logger().info)(line)
 
         self._counts: Counter[str] = Counter()
-        self._warned: set[str] = set()
+        self._warnings = CountedWarnings(self, self._counts)
         self._last_status: str | None = None
         self._last_save = time.monotonic()
         self._stop = threading.Event()
@@ -202,10 +202,7 @@ class CalibratorNode(Node):
 
     # ----------------------------------------------------------------------------------------------
     def _warn_once(self, kind: str, message: str) -> None:
-        self._counts[kind] += 1
-        if kind not in self._warned:
-            self._warned.add(kind)
-            self.get_logger().warning(f"{kind}: {message} (further ones counted in diagnostics)")
+        self._warnings.warn_once(kind, f"{kind}: {message}")
 
     def _on_homography(self, msg: HomographyStamped) -> None:
         self._counts["homographies_in"] += 1

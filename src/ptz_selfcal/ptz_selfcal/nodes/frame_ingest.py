@@ -41,7 +41,7 @@ from ptz_selfcal.nodes.conversions import (
     stamp_to_ns,
     stamp_to_sec,
 )
-from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal_msgs.msg import IngestedFrame
 
 PARAMS = [
@@ -160,7 +160,7 @@ class FrameIngest(Node):
         self._wait = p["encoder_wait"]
 
         self._counts: Counter[str] = Counter()  # frames_in, frames_out, skipped_<kind>, ...
-        self._warned: set[str] = set()
+        self._warnings = CountedWarnings(self, self._counts)
         self._seq = 0
         self._recent_stamps: deque[int] = deque(maxlen=8)
         self._newest_image_time: float | None = None
@@ -219,19 +219,11 @@ class FrameIngest(Node):
 
     # ------------------------------------------------------------------ input
     def _skip(self, kind: str, message: str) -> None:
-        self._counts[f"skipped_{kind}"] += 1
-        if kind not in self._warned:
-            self._warned.add(kind)
-            self.get_logger().warning(
-                f"frame skipped ({kind}): {message} (further ones counted in diagnostics)"
-            )
+        self._warnings.warn_once(kind, f"frame skipped ({kind}): {message}", key=f"skipped_{kind}")
 
     def _note(self, kind: str, message: str) -> None:
         """A counted anomaly that does not stop the frame (logged once per kind)."""
-        self._counts[kind] += 1
-        if kind not in self._warned:
-            self._warned.add(kind)
-            self.get_logger().warning(f"{kind}: {message} (further ones counted in diagnostics)")
+        self._warnings.warn_once(kind, f"{kind}: {message}")
 
     def _on_raw(self, msg: Image) -> None:
         self._counts["frames_in_raw"] += 1

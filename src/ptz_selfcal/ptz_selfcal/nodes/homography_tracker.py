@@ -40,7 +40,7 @@ from ptz_selfcal.nodes.conversions import (
     one_of,
     stamp_to_sec,
 )
-from ptz_selfcal.nodes.runtime import reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
 
 PARAMS = [
@@ -144,7 +144,7 @@ class HomographyTrackerNode(Node):
             raise ConfigError(f"tracker configuration: {exc}") from exc
 
         self._counts: Counter[str] = Counter()
-        self._warned: set[str] = set()
+        self._warnings = CountedWarnings(self, self._counts)
         self._durations: deque[float] = deque(maxlen=1000)
         self._last_seq: int | None = None
         self._last_frame_index = -1
@@ -171,10 +171,7 @@ class HomographyTrackerNode(Node):
         )
 
     def _warn_once(self, kind: str, message: str) -> None:
-        self._counts[kind] += 1
-        if kind not in self._warned:
-            self._warned.add(kind)
-            self.get_logger().warning(f"{kind}: {message} (further ones counted in diagnostics)")
+        self._warnings.warn_once(kind, f"{kind}: {message}")
 
     def _on_frame(self, msg: IngestedFrame) -> None:
         self._counts["frames_in"] += 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -40,3 +41,19 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         if rclpy.ok():
             rclpy.shutdown()
     return 0
+
+
+class CountedWarnings:
+    """Anomaly counters for /diagnostics with one log line the first time each kind occurs."""
+
+    def __init__(self, node: Node, counts: Counter[str]) -> None:
+        self._logger = node.get_logger()
+        self._counts = counts
+        self._warned: set[str] = set()
+
+    def warn_once(self, kind: str, message: str, *, key: str | None = None) -> None:
+        """Count `kind` (under `key` if given) and log `message` only on its first occurrence."""
+        self._counts[key or kind] += 1
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self._logger.warning(f"{message} (further ones counted in diagnostics)")
