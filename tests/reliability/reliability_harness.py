@@ -570,6 +570,7 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
     Hs = [K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(period)]
     block = 1000
     cpu = np.zeros(n)
+    cpu_frame = np.zeros(n)  # the frame path alone (process()); the node runs the steps on a worker thread
     rss: list[float] = []
     errors = np.full(n, np.nan)  # preallocated: the soak's own bookkeeping must not grow per frame
     statuses: dict[str, int] = {}
@@ -585,6 +586,7 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
         )  # fmt: skip
         t0 = time.thread_time()
         out = session.process(frame)
+        cpu_frame[j] = time.thread_time() - t0
         if new_kf and c >= keyframe_every:
             a, b = c, c - keyframe_every
             xa = rng.uniform([0, 0], [width - 1, height - 1], (200, 2))
@@ -600,6 +602,7 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
         if (j + 1) % block == 0:
             rss.append(own_rss_mb())
     blocks = cpu[: n - n % block].reshape(-1, block).mean(axis=1) * 1e3
+    frame_blocks = cpu_frame[: n - n % block].reshape(-1, block).mean(axis=1) * 1e3
     a, b = warmup
     return {
         "frames": n,
@@ -612,6 +615,9 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
         # processes on the (shared, 2-core) machine, which inflate thread CPU time through the caches
         "warm_cpu_min": float(np.min(blocks[a // block : b // block])),
         "end_cpu_min": float(np.min(blocks[-((b - a) // block) :])),
+        "frame_cpu_ms_blocks": frame_blocks.tolist(),
+        "warm_frame_cpu_min": float(np.min(frame_blocks[a // block : b // block])),
+        "end_frame_cpu_min": float(np.min(frame_blocks[-((b - a) // block) :])),
         "warm_rss": float(np.mean(rss[a // block : b // block])),
         "end_rss": float(np.mean(rss[-((b - a) // block) :])),
         "p95_cpu_ms": float(np.percentile(cpu, 95) * 1e3),
