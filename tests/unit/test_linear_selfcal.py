@@ -6,36 +6,25 @@ import numpy as np
 import pytest
 
 from ptz_selfcal.core.geometry import (
-    infinite_homography,
     intrinsic_matrix,
     ptz_rotation,
+    reference_homographies,
     relative_rotation,
     rotation_angle,
 )
 from ptz_selfcal.core.homography import estimate_homography
 from ptz_selfcal.core.intrinsics import SelfCalibrationError
 from ptz_selfcal.core.linear_selfcal import intrinsics_from_iac, linear_selfcalibration
+from ptz_selfcal.core.synthetic import circle_rotations
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)
 
 
-def circle_motion(n: int, radius_deg: float) -> np.ndarray:
-    """Paper 4.1: the principal ray on a circle (pan-tilt head, no roll); R maps world to camera."""
-    phi = 2.0 * np.pi * np.arange(n) / n
-    r = np.radians(radius_deg)
-    return np.array([ptz_rotation(r * np.cos(a), r * np.sin(a)) for a in phi])
-
-
-def homographies(K: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Exact H_j = K_j R_0j K_0^-1 mapping frame-0 pixels to frame-j pixels (eq. 8)."""
-    return np.array([infinite_homography(K[0], K[j], relative_rotation(R[0], R[j])) for j in range(len(K))])
-
-
 def paper_sequence(config: str, n: int = 30) -> tuple[np.ndarray, np.ndarray]:
     radius, f0, f1 = {"A": (5.0, 800.0, 1400.0), "B": (3.5, 1200.0, 2000.0)}[config]
     K = np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(f0, f1, n)])
-    return K, circle_motion(n, radius)
+    return K, circle_rotations(n, radius)
 
 
 def noisy_homographies(K: np.ndarray, R: np.ndarray, sigma: float, seed: int) -> np.ndarray:
@@ -70,8 +59,8 @@ def test_square_pixels_exact_recovers_varying_principal_point() -> None:
     f = np.linspace(700.0, 1500.0, n)
     pp = np.array(CENTRE) + rng.uniform(-25.0, 25.0, (n, 2))
     K = np.array([intrinsic_matrix(f[j], *pp[j]) for j in range(n)])
-    R = circle_motion(n, 6.0)
-    result = linear_selfcalibration(homographies(K, R), SIZE, square_pixels=True)
+    R = circle_rotations(n, 6.0)
+    result = linear_selfcalibration(reference_homographies(K, R), SIZE, square_pixels=True)
     assert_intrinsics_close(result.K, K)
     for j in range(n):
         assert rotation_angle(result.R[j] @ relative_rotation(R[0], R[j]).T) < 1e-8
@@ -91,7 +80,7 @@ def test_zero_skew_only_exact_with_general_rotation() -> None:
         ]
     )
     R = np.array([ptz_rotation(*rng.uniform(-0.2, 0.2, 3)) for _ in range(n)])
-    result = linear_selfcalibration(homographies(K, R), SIZE, zero_skew=True, square_pixels=False)
+    result = linear_selfcalibration(reference_homographies(K, R), SIZE, zero_skew=True, square_pixels=False)
     assert_intrinsics_close(result.K, K)
 
 
@@ -101,15 +90,17 @@ def test_known_principal_point_exact_off_centre(square: bool) -> None:
     n = 10
     aspect = 1.0 if square else 1.07
     K = np.array([intrinsic_matrix(f, *pp, aspect=aspect) for f in np.linspace(900.0, 1300.0, n)])
-    R = circle_motion(n, 5.0)
-    result = linear_selfcalibration(homographies(K, R), SIZE, square_pixels=square, known_principal_point=pp)
+    R = circle_rotations(n, 5.0)
+    result = linear_selfcalibration(
+        reference_homographies(K, R), SIZE, square_pixels=square, known_principal_point=pp
+    )
     assert_intrinsics_close(result.K, K)
 
 
 def test_paper_configurations_exact() -> None:
     for config in "AB":
         K, R = paper_sequence(config)
-        H = homographies(K, R)
+        H = reference_homographies(K, R)
         assert_intrinsics_close(linear_selfcalibration(H, SIZE).K, K)
         assert_intrinsics_close(linear_selfcalibration(H, SIZE, known_principal_point=CENTRE).K, K)
 
@@ -119,20 +110,20 @@ def test_pan_only_with_zero_skew_only_is_rejected() -> None:
     K = np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(800.0, 1200.0, n)])
     R = np.array([ptz_rotation(p, 0.0) for p in np.radians(np.linspace(0.0, 12.0, n))])
     with pytest.raises(SelfCalibrationError, match="insufficient"):
-        linear_selfcalibration(homographies(K, R), SIZE, square_pixels=False)
+        linear_selfcalibration(reference_homographies(K, R), SIZE, square_pixels=False)
 
 
 def test_pan_tilt_with_zero_skew_only_is_rejected() -> None:
     """Agapito et al. 1999 (section 6.1): zero skew is insufficient for a pan-tilt platform."""
     K, R = paper_sequence("A")
     with pytest.raises(SelfCalibrationError, match="insufficient"):
-        linear_selfcalibration(homographies(K, R), SIZE, square_pixels=False)
+        linear_selfcalibration(reference_homographies(K, R), SIZE, square_pixels=False)
 
 
 def test_too_few_equations_is_rejected() -> None:
     K, R = paper_sequence("A", n=2)
     with pytest.raises(SelfCalibrationError, match="constraints"):
-        linear_selfcalibration(homographies(K, R), SIZE, square_pixels=False)
+        linear_selfcalibration(reference_homographies(K, R), SIZE, square_pixels=False)
 
 
 def test_non_positive_definite_iac_is_detected() -> None:
@@ -178,11 +169,11 @@ def test_pan_only_with_square_pixels_solves_but_is_flagged() -> None:
     n = 10
     K = np.array([intrinsic_matrix(f, *CENTRE) for f in np.linspace(800.0, 1200.0, n)])
     R = np.array([ptz_rotation(p, np.radians(5.0)) for p in np.radians(np.linspace(0.0, 12.0, n))])
-    result = linear_selfcalibration(homographies(K, R), SIZE, square_pixels=True)
+    result = linear_selfcalibration(reference_homographies(K, R), SIZE, square_pixels=True)
     assert_intrinsics_close(result.K, K)
     assert not result.ok
     assert result.motion is not None and result.motion.status == "degenerate_single_axis"
-    ok = linear_selfcalibration(homographies(*paper_sequence("A")), SIZE)
+    ok = linear_selfcalibration(reference_homographies(*paper_sequence("A")), SIZE)
     assert ok.ok and ok.motion.status == "ok"
 
 

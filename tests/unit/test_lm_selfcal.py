@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from ptz_selfcal.core.geometry import (
-    infinite_homography,
     intrinsic_matrix,
-    ptz_rotation,
     quaternion_from_matrix,
+    reference_homographies,
     relative_rotation,
     rotation_angle,
 )
@@ -28,25 +27,16 @@ from ptz_selfcal.core.intrinsics import (
     parameters_from_intrinsics,
 )
 from ptz_selfcal.core.lm_selfcal import _Eq22Problem, lm_selfcalibration
+from ptz_selfcal.core.synthetic import circle_rotations
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)
 
 
-def circle_motion(n: int, radius_deg: float) -> np.ndarray:
-    phi = 2.0 * np.pi * np.arange(n) / n
-    r = np.radians(radius_deg)
-    return np.array([ptz_rotation(r * np.cos(a), r * np.sin(a)) for a in phi])
-
-
-def homographies(K: np.ndarray, R: np.ndarray) -> np.ndarray:
-    return np.array([infinite_homography(K[0], K[j], relative_rotation(R[0], R[j])) for j in range(len(K))])
-
-
 def paper_sequence(config: str, n: int = 30, pp=CENTRE) -> tuple[np.ndarray, np.ndarray]:
     radius, f0, f1 = {"A": (5.0, 800.0, 1400.0), "B": (3.5, 1200.0, 2000.0)}[config]
     K = np.array([intrinsic_matrix(f, *pp) for f in np.linspace(f0, f1, n)])
-    return K, circle_motion(n, radius)
+    return K, circle_rotations(n, radius)
 
 
 def noisy_homographies(K: np.ndarray, R: np.ndarray, sigma: float, seed: int) -> np.ndarray:
@@ -77,7 +67,7 @@ def max_relative_error(K_est: np.ndarray, K_true: np.ndarray) -> float:
 )
 def test_exact_recovery_per_model(model: IntrinsicsModel) -> None:
     K, R = paper_sequence("A")
-    result = lm_selfcalibration(homographies(K, R), SIZE, model)
+    result = lm_selfcalibration(reference_homographies(K, R), SIZE, model)
     assert result.ok, result.message
     assert max_relative_error(result.K, K) < 1e-6
     for j in range(len(K)):
@@ -92,10 +82,10 @@ def test_exact_recovery_constant_unknown_aspect_and_off_centre_pp() -> None:
     pp = (330.0, 228.0)
     n = 20
     K = np.array([intrinsic_matrix(f, *pp, aspect=1.08) for f in np.linspace(850.0, 1300.0, n)])
-    R = circle_motion(n, 6.0)
+    R = circle_rotations(n, 6.0)
     model = IntrinsicsModel.constant_aspect()
     K_init = np.array([intrinsic_matrix(0.9 * k[1, 1], *CENTRE) for k in K])  # a deliberately rough start
-    result = lm_selfcalibration(homographies(K, R), SIZE, model, K_init)
+    result = lm_selfcalibration(reference_homographies(K, R), SIZE, model, K_init)
     assert result.ok, result.message
     assert max_relative_error(result.K, K) < 1e-6
 
@@ -103,7 +93,7 @@ def test_exact_recovery_constant_unknown_aspect_and_off_centre_pp() -> None:
 def test_known_pp_off_centre_exact() -> None:
     pp = (300.0, 250.0)
     K, R = paper_sequence("B", pp=pp)
-    result = lm_selfcalibration(homographies(K, R), SIZE, IntrinsicsModel.square_known_pp(pp))
+    result = lm_selfcalibration(reference_homographies(K, R), SIZE, IntrinsicsModel.square_known_pp(pp))
     assert max_relative_error(result.K, K) < 1e-6
 
 
@@ -112,7 +102,7 @@ def test_analytic_jacobian_matches_finite_differences() -> None:
         aspect=ParamMode.VARYING, skew=ParamMode.CONSTANT, principal_point=ParamMode.VARYING
     )
     K, R = paper_sequence("A", n=6)
-    H = homographies(K, R) / 1000.0
+    H = reference_homographies(K, R) / 1000.0
     problem = _Eq22Problem(H / np.cbrt(np.linalg.det(H))[:, None, None], model.normalised(SIZE, 640.0))
     p = np.random.default_rng(0).uniform(0.5, 1.5, problem.size)
     eps = 1e-7
@@ -140,7 +130,7 @@ def test_too_many_unknowns_is_rejected() -> None:
     )
     K, R = paper_sequence("A", n=5)
     with pytest.raises(SelfCalibrationError, match="unknowns"):
-        lm_selfcalibration(homographies(K, R), SIZE, model)
+        lm_selfcalibration(reference_homographies(K, R), SIZE, model)
 
 
 def test_collapse_to_zero_focal_is_reported_as_failure() -> None:

@@ -53,6 +53,12 @@ def infinite_homography(K_i: ArrayLike, K_j: ArrayLike, R_ij: ArrayLike) -> Arra
     return np.asarray(K_j) @ np.asarray(R_ij) @ np.linalg.inv(np.asarray(K_i))
 
 
+def reference_homographies(K: ArrayLike, R: ArrayLike) -> Array:
+    """(n, 3, 3) infinite homographies H_j = K_j R_j R_0^T K_0^-1 from frame 0 to every frame j (eq. 8)."""
+    K, R = np.asarray(K, dtype=float), np.asarray(R, dtype=float)
+    return np.array([infinite_homography(K[0], K[j], relative_rotation(R[0], R[j])) for j in range(len(K))])
+
+
 def relative_rotation(R_i: ArrayLike, R_j: ArrayLike) -> Array:
     """R_ij = R_j R_i^T: rotation from camera i to camera j."""
     return np.asarray(R_j) @ np.asarray(R_i).T

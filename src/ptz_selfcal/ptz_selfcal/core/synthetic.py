@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.core.geometry import infinite_homography, intrinsic_matrix, ptz_rotation, relative_rotation
+from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation, reference_homographies
 from ptz_selfcal.core.homography import estimate_homography
 from ptz_selfcal.core.intrinsics import image_centre
 
@@ -59,12 +59,7 @@ class SyntheticSequence:
 
     def H_true(self) -> Array:
         """(n, 3, 3) exact infinite homographies frame 0 -> frame j (eq. 8), unit H[2, 2]."""
-        H = np.array(
-            [
-                infinite_homography(self.K[0], Kj, relative_rotation(self.R[0], Rj))
-                for Kj, Rj in zip(self.K, self.R)
-            ]
-        )
+        H = reference_homographies(self.K, self.R)
         return H / H[:, 2:3, 2:3]
 
     def observations(self) -> tuple[NDArray[np.intp], NDArray[np.intp], Array]:

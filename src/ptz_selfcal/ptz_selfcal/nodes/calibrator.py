@@ -42,7 +42,6 @@ from ptz_selfcal.core.calibration_state import (
 from ptz_selfcal.core.geometry import quaternion_from_matrix
 from ptz_selfcal.core.lens_correction import SessionLensHook
 from ptz_selfcal.nodes.conversions import (
-    ConfigError,
     Param,
     camera_info_fields,
     declare_params,
@@ -391,11 +390,7 @@ def main(args: list[str] | None = None) -> int:
     # callback waits up to the switch interval at every hand-over (5 ms by default, several per frame).
     # 1 ms bounds what the worker adds to a frame's latency at a small cost in the worker's throughput.
     sys.setswitchinterval(0.001)
-    try:
-        return run_node(CalibratorNode, args)
-    except ConfigError as exc:
-        print(f"calibrator: configuration error: {exc}", file=sys.stderr)
-        return 2
+    return run_node(CalibratorNode, args, "calibrator")
 
 
 if __name__ == "__main__":

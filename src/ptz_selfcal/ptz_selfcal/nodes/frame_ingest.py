@@ -391,11 +391,7 @@ class FrameIngest(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    try:
-        return run_node(FrameIngest, args)
-    except ConfigError as exc:
-        print(f"frame_ingest: configuration error: {exc}", file=sys.stderr)
-        return 2
+    return run_node(FrameIngest, args, "frame_ingest")
 
 
 if __name__ == "__main__":

@@ -325,11 +325,7 @@ def _state_name(state: int) -> str:
 
 
 def main(args: list[str] | None = None) -> int:
-    try:
-        return run_node(HomographyTrackerNode, args)
-    except ConfigError as exc:
-        print(f"homography_tracker: configuration error: {exc}", file=sys.stderr)
-        return 2
+    return run_node(HomographyTrackerNode, args, "homography_tracker")
 
 
 if __name__ == "__main__":

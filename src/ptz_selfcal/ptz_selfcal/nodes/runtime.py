@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections import Counter
 from collections.abc import Callable, Sequence
 
@@ -9,6 +10,8 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from ptz_selfcal.nodes.conversions import ConfigError
 
 
 def reliable_qos(depth: int = 0) -> QoSProfile:
@@ -18,8 +21,18 @@ def reliable_qos(depth: int = 0) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
-    """Create the node, spin until Ctrl-C/SIGTERM or rclpy shutdown, then tear down cleanly."""
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "node") -> int:
+    """Create the node, spin until Ctrl-C/SIGTERM or rclpy shutdown, then tear down cleanly.
+
+    A configuration error (absurd parameter) is one line on stderr and exit status 2."""
+    try:
+        return _spin_node(factory, args)
+    except ConfigError as exc:
+        print(f"{name}: configuration error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _spin_node(factory: Callable[[], Node], args: Sequence[str] | None) -> int:
     # rclpy's default handlers turn SIGINT and SIGTERM into a context shutdown, which ends spin().
     rclpy.init(args=args)
     node = None
