@@ -469,9 +469,11 @@ def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int 
 
 
 def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps: float = 60.0,
-                      width: int = 1920, height: int = 1080, distinct: int = 24) -> dict:  # fmt: skip
+                      width: int = 1920, height: int = 1080, distinct: int = 24,
+                      t0: float = T0) -> dict:  # fmt: skip
     """Publish JPEG frames of width x height at `fps` (best effort, like a camera driver) with encoders for
-    `seconds`; returns what came out: counts, latencies (send -> CameraInfo), RSS samples per node."""
+    `seconds`, stamped from `t0`; returns what came out: counts, latencies (send -> CameraInfo), RSS samples
+    per node, and the last stamp sent (s)."""
     from sensor_msgs.msg import CompressedImage
 
     fw = f_wide_for(width)
@@ -494,7 +496,7 @@ def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps:
             break
         due = start + k / fps
         if now >= due:
-            t = T0 + k / fps
+            t = t0 + k / fps
             v = views[k % distinct]
             msg = msgs[k % distinct]
             msg.header.stamp = stamp_of(t)
@@ -528,6 +530,7 @@ def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps:
         "early_latencies": early,
         "late_latencies": late,
         "rss": rss,
+        "last_stamp": t0 + (k - 1) / fps,
     }
 
 

@@ -5,6 +5,10 @@ The graph sheds frames by policy instead of queueing them: the latency from publ
 CameraInfo stays bounded (no growth from the first to the last third), the resident memory of every node
 process stays bounded, every CameraInfo belongs to a published image and comes once, and the shed frames
 are reported in /diagnostics (tracker frames_dropped from sequence gaps; ingest frames_in below sent).
+
+Whether 60 frames/s must be shed depends on the machine (a fast CI runner keeps up with all of them), so
+every frame is accounted for instead: calibrated, or reported as dropped. A second, short burst at a rate
+no 2-core machine decodes and tracks (1080p at 300 frames/s) then proves the shedding itself.
 """
 
 from __future__ import annotations
@@ -17,6 +21,44 @@ ROS_DOMAIN_ID = 178
 SECONDS = 12.0
 
 
+def _counters(feeder: rh.Feeder) -> dict[str, int]:
+    d = feeder.diagnostics
+    ingest, tracker = d["frame_ingest"], d["homography_tracker"]
+    return {
+        "ingest_in": int(ingest["frames_in"]),
+        "ingest_out": int(ingest["frames_out"]),
+        "tracker_in": int(tracker["frames_in"]),
+        "tracker_dropped": int(tracker["frames_dropped"]),
+        "missing_estimate": int(ingest.get("input_frames_missing_estimate", 0)),
+        "camera_info_out": int(d["calibrator"]["camera_info_out"]),
+    }
+
+
+def _assert_accounted(r: dict, before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+    """Every frame sent is calibrated once or reported as dropped (before ingest, by ingest, by tracker)."""
+    delta = {key: after[key] - before.get(key, 0) for key in after}
+    assert r["duplicates"] == 0 and r["unknown"] == 0
+    assert delta["camera_info_out"] == r["calibrated"], (delta, r["calibrated"])
+    dropped_before_ingest = r["sent"] - delta["ingest_in"]
+    skipped_by_ingest = delta["ingest_in"] - delta["ingest_out"]
+    assert dropped_before_ingest >= 0 and skipped_by_ingest >= 0, delta
+    assert delta["tracker_in"] + delta["tracker_dropped"] <= delta["ingest_out"], delta
+    reported = dropped_before_ingest + skipped_by_ingest + delta["tracker_dropped"]
+    assert r["sent"] - r["calibrated"] == reported, (r["sent"], r["calibrated"], delta)
+    return {"before_ingest": dropped_before_ingest, "tracker": delta["tracker_dropped"], **delta}
+
+
+def _latency_line(name: str, r: dict, dropped: dict[str, int]) -> str:
+    lat = np.asarray(r["latencies"]) * 1e3
+    return (
+        f"{name}: sent {r['sent']} at {r['rate']:.1f}/s, calibrated {r['calibrated']}, latency p50 "
+        f"{np.percentile(lat, 50):.0f} ms p95 {np.percentile(lat, 95):.0f} ms max {lat.max():.0f} ms; "
+        f"shed before ingest {dropped['before_ingest']} (estimated {dropped['missing_estimate']}), "
+        f"by the tracker {dropped['tracker']}; peak RSS "
+        + ", ".join(f"{n} {max(v for _, v in s):.0f} MB" for n, s in r["rss"].items())
+    )
+
+
 def test_60fps_1080p_is_shed_by_policy_with_bounded_latency_and_memory(ros_env, start_process):
     latest = ("queue_policy:=latest", "queue_depth:=1")
     procs = rh.start_graph(
@@ -25,26 +67,21 @@ def test_60fps_1080p_is_shed_by_policy_with_bounded_latency_and_memory(ros_env, 
     )  # fmt: skip
     camera_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
     feeder = rh.Feeder("overload_feeder", sensor_qos=camera_qos)
+    pids = {n: p.pid for n, p in procs.items()}
     try:
         feeder.wait_connected(compressed=True)
-        r = rh.overload_scenario(feeder, {n: p.pid for n, p in procs.items()}, SECONDS)
+        r = rh.overload_scenario(feeder, pids, SECONDS)
         feeder.spin(1.0)
-        d = feeder.diagnostics
-        lat = np.asarray(r["latencies"]) * 1e3
-        print(
-            f"overload: sent {r['sent']} at {r['rate']:.1f}/s, calibrated {r['calibrated']}, latency p50 "
-            f"{np.percentile(lat, 50):.0f} ms p95 {np.percentile(lat, 95):.0f} ms max {lat.max():.0f} ms; "
-            f"ingest in {d['frame_ingest']['frames_in']} out {d['frame_ingest']['frames_out']}, tracker "
-            f"dropped {d['homography_tracker'].get('frames_dropped')}; peak RSS "
-            + ", ".join(f"{n} {max(v for _, v in s):.0f} MB" for n, s in r["rss"].items())
-        )
+        counts = _counters(feeder)
+        dropped = _assert_accounted(r, {}, counts)
+        print(_latency_line("60 fps", r, dropped))
         assert r["rate"] > 55.0, r["rate"]  # the input really was 60 frames/s
-        assert r["duplicates"] == 0 and r["unknown"] == 0
-        # shed, not queued: a good share is calibrated, the rest is dropped by policy
-        assert 0.1 * r["sent"] < r["calibrated"] < r["sent"]
+        # shed or kept up, never queued: a good share is calibrated
+        assert r["calibrated"] > 0.1 * r["sent"], r["calibrated"]
         # bounded: the latest-wins queues cannot build up, so the latency stays the processing time. It does
         # grow as the calibrator's re-optimisation takes its CPU share (50 -> 180 ms p95 over 30 s in the
         # benchmark, up to 370 ms on a loaded machine): an absolute bound, not a ratio
+        lat = np.asarray(r["latencies"]) * 1e3
         late = np.asarray(r["late_latencies"]) * 1e3
         assert np.percentile(late, 95) < 800.0 and lat.max() < 2000.0, (np.percentile(late, 95), lat.max())
         # memory bounded: no growth over the second half of the run
@@ -52,20 +89,21 @@ def test_60fps_1080p_is_shed_by_policy_with_bounded_latency_and_memory(ros_env, 
             half = [v for t, v in samples if t >= SECONDS / 2]
             first = [v for t, v in samples if t < SECONDS / 2]
             assert max(half) < max(first) * 1.1 + 20.0, (name, first, half)
-        # the dropped count is reported
-        ingest, tracker = d["frame_ingest"], d["homography_tracker"]
-        dropped_tracker = int(tracker["frames_dropped"])
-        dropped_before_ingest = r["sent"] - int(ingest["frames_in"])
-        assert dropped_tracker > 0 or dropped_before_ingest > 0
         # frame_ingest estimates the images shed before it from the gaps in their stamps (relative to the
         # median interval, which itself grows under heavy shedding: measured 77 for 111 shed, 69 %)
-        missing = int(ingest.get("input_frames_missing_estimate", 0))
-        assert 0.5 * dropped_before_ingest - 5 <= missing <= 1.5 * dropped_before_ingest + 5, (
-            missing,
-            dropped_before_ingest,
-        )
-        assert int(tracker["frames_in"]) + dropped_tracker <= int(ingest["frames_out"])
-        assert int(feeder.diagnostics["calibrator"]["camera_info_out"]) == r["calibrated"]
+        shed = dropped["before_ingest"]
+        assert 0.5 * shed - 5 <= dropped["missing_estimate"] <= 1.5 * shed + 5, dropped
+
+        # the burst: more than any 2-core machine decodes and tracks, so frames must be shed, and reported
+        burst = rh.overload_scenario(feeder, pids, 3.0, fps=300.0, t0=r["last_stamp"] + 1.0 / 60.0)
+        feeder.spin(1.0)
+        dropped = _assert_accounted(burst, counts, _counters(feeder))
+        print(_latency_line("300 fps burst", burst, dropped))
+        assert burst["rate"] > 150.0, burst["rate"]
+        assert dropped["before_ingest"] + dropped["tracker"] > 0, dropped
+        assert 0 < burst["calibrated"] < burst["sent"], burst["calibrated"]
+        lat = np.asarray(burst["latencies"]) * 1e3
+        assert np.percentile(lat, 95) < 800.0 and lat.max() < 2000.0, (np.percentile(lat, 95), lat.max())
         for name, proc in procs.items():
             assert proc.alive(), f"{name} died:\n{proc.output()[-3000:]}"
     finally:
