@@ -87,17 +87,19 @@ def graph(env: dict[str, str], workdir: Path, **kwargs) -> Iterator[dict[str, No
 
 
 class Sampler:
-    """Peak RSS of node processes, sampled while the feeder spins."""
+    """Peak RSS of node processes: the kernel's high-water mark (VmHWM), read while they are alive."""
 
     def __init__(self, pids: dict[str, int]) -> None:
         self.pids = pids
         self.peak = dict.fromkeys(pids, 0.0)
+        self.now = dict.fromkeys(pids, math.nan)
 
     def sample(self) -> None:
         for name, pid in self.pids.items():
-            value = rh.rss_mb(pid)
+            value = rh.rss_mb(pid, "VmHWM")
             if math.isfinite(value):
                 self.peak[name] = max(self.peak[name], value)
+            self.now[name] = rh.rss_mb(pid)
 
     def line(self) -> str:
         return "peak RSS " + ", ".join(f"{n} {v:.0f} MB" for n, v in self.peak.items())
@@ -120,6 +122,8 @@ def bad_input(domain: Domain, work: Path, lines: list[str]) -> None:
         sampler = Sampler({n: p.pid for n, p in nodes.items()})
         try:
             feeder.wait_connected()
+            sampler.sample()
+            peak_before = dict(sampler.peak)
             start = time.monotonic()
             _views, good, refused = rh.bad_input_catalogue(feeder, 640, 360, n=120)
             feeder.spin(3.0, lambda: all(ns in feeder.infos for ns in good))
@@ -137,12 +141,64 @@ def bad_input(domain: Domain, work: Path, lines: list[str]) -> None:
                 f"CameraInfo: {once}/{len(good)}; CameraInfo for a refused frame: "
                 f"{len(set(refused) & set(feeder.infos))}); {wall:.0f} s",
                 f"   skipped and why (frame_ingest /diagnostics): {skipped_line(d['frame_ingest'])}",
-                f"   {sampler.line()} (after the 256 MB 16k x 16k image)",
+                f"   {sampler.line()} (kernel high-water mark over the catalogue, which holds a real 256 MB "
+                f"16k x 16k image; frame_ingest peak {sampler.peak['frame_ingest']:.0f} MB = "
+                f"{peak_before['frame_ingest']:.0f} MB before the catalogue + "
+                f"{(sampler.peak['frame_ingest'] - peak_before['frame_ingest']) / 256:.2f} x 256 MB; RSS at "
+                f"the end {sampler.now['frame_ingest']:.0f} MB)",
+                f"   {ingest_cost()}",
                 f"   {latency_line(lat)}",
                 "   nodes alive at the end: " + ", ".join(f"{n} {p.alive()}" for n, p in nodes.items()),
             ]
         finally:
             feeder.close()
+
+
+def ingest_cost(repeats: int = 40) -> str:
+    """Per-frame time of frame_ingest's conversion of a received serialized image to the working mono8:
+    rclpy's deserialisation + conversion (the node's path before it subscribed raw) against the raw path
+    (the take's copy of the serialized message, its header read in place, conversion). Median over
+    `repeats` of the thread's CPU time (waiting for a CPU not counted), both paths interleaved so that load
+    from other processes hits both alike."""
+    import cv2
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import CompressedImage, Image
+
+    from ptz_selfcal.nodes.conversions import (
+        compressed_to_working,
+        image_to_working,
+        parse_serialized_image,
+    )
+
+    rng = np.random.default_rng(7)
+    cases = []
+    for width, height, encoding in ((1920, 1080, "bgr8"), (640, 360, "mono8")):
+        channels = 3 if encoding == "bgr8" else 1
+        pixels = rng.integers(0, 256, (height, width, channels), np.uint8)
+        msg = Image(height=height, width=width, encoding=encoding, step=width * channels)
+        msg.data = pixels.tobytes()
+        cases.append((f"{width}x{height} {encoding}", Image, msg, image_to_working))
+    jpeg = cv2.imencode(".jpg", rh.render(rh.View(0.0, 0.0, 1600.0, 0.0), 1920, 1080))[1].tobytes()
+    cases.append(("1920x1080 JPEG", CompressedImage, CompressedImage(format="jpeg", data=jpeg),
+                  compressed_to_working))  # fmt: skip
+    parts = []
+    for label, msg_type, msg, convert in cases:
+        data = serialize_message(msg)
+        compressed = msg_type is CompressedImage
+        before, after = [], []
+        for _ in range(repeats):
+            t0 = time.thread_time()
+            convert(deserialize_message(data, msg_type), 640)
+            t1 = time.thread_time()
+            convert(parse_serialized_image(bytes(bytearray(data)), compressed), 640)
+            t2 = time.thread_time()
+            before.append(t1 - t0)
+            after.append(t2 - t1)
+        parts.append(f"{label} {np.median(before) * 1e3:.2f} -> {np.median(after) * 1e3:.2f} ms")
+    return (
+        "ingest CPU per frame, serialized image -> working mono8, deserialised -> raw subscription read in "
+        + ("place: " + ", ".join(parts))
+    )
 
 
 def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:

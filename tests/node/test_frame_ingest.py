@@ -232,6 +232,11 @@ def test_good_frames_converted_bad_ones_counted_node_survives(ingest):
     huge.width = huge.height = 16384
     h.raw.publish(huge)
     t += 0.1
+    # a serialized Image cut short (published as it is): its data field claims more bytes than follow
+    from rclpy.serialization import serialize_message
+
+    h.raw.publish(serialize_message(image_msg(t, gray, "mono8"))[:500])
+    t += 0.1
     # A good frame after all that, and one whose stamp no encoder sample will ever bracket.
     bgr = scene(8)
     h.raw.publish(image_msg(t, bgr, "bgr8"))
@@ -268,8 +273,9 @@ def test_good_frames_converted_bad_ones_counted_node_survives(ingest):
 
     assert h.spin(5.0, counted), h.diagnostics[-1:]
     d = h.diagnostics[-1]
-    assert d["frames_in"] == str(len(goods) + 1 + 7)
+    assert d["frames_in"] == str(len(goods) + 1 + 8)
     assert d["skipped_too_large"] == "1"
+    assert d["skipped_malformed"] == "1"
     assert d["skipped_bad_step"] == "2"  # lying step, lying encoding
     assert d["skipped_unsupported_encoding"] == "1"
     assert d["skipped_undecodable"] == "2"

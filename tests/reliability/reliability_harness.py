@@ -308,11 +308,12 @@ def image_msg(t: float, pixels: np.ndarray, encoding: str = "mono8", step: int |
 
 # ---------------------------------------------------------------------------------------------------------
 # measurements
-def rss_mb(pid: int) -> float:
-    """Resident memory of a process (MB), NaN when it is gone."""
+def rss_mb(pid: int, field: str = "VmRSS") -> float:
+    """Resident memory of a process (MB), NaN when it is gone; field VmHWM: its peak so far (the kernel's
+    high-water mark, exact where sampling would miss a short-lived copy)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         pass

@@ -207,3 +207,85 @@ def test_jpeg_reduced_decoding_keeps_pixel_centres(size, working_width):
     (dx, dy), _ = cv2.phaseCorrelate(out.image.astype(np.float64), reference.astype(np.float64))
     assert abs(dx) < 0.02 and abs(dy) < 0.02
     assert np.abs(out.image.astype(float) - reference).mean() < 1.5
+
+
+# ---------------------------------------------------------------------------------------------------------
+# serialized messages read in place (frame_ingest's raw subscriptions)
+@pytest.mark.parametrize("frame_id", ["", "c", "cam", "ptz_camera", "x" * 13])  # every alignment after it
+@pytest.mark.parametrize("encoding", ["mono8", "bgr8", "mono16"])
+def test_serialized_image_read_in_place_equals_rclpy_deserialisation(frame_id, encoding):
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import Image
+
+    from ptz_selfcal.nodes.conversions import parse_serialized_image
+
+    channels, depth = {"mono8": (1, 1), "bgr8": (3, 1), "mono16": (1, 2)}[encoding]
+    msg = Image(height=H, width=W, encoding=encoding, is_bigendian=1 if depth == 2 else 0)
+    msg.step = W * channels * depth + 3  # padded rows
+    msg.data = RNG.integers(0, 256, msg.step * H, np.uint8).tobytes()
+    msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = -5, 999_999_999, frame_id
+    data = serialize_message(msg)
+    parsed = parse_serialized_image(data)
+    reference = deserialize_message(data, Image)
+    assert (parsed.sec, parsed.nanosec, parsed.frame_id) == (-5, 999_999_999, frame_id)
+    for field in ("height", "width", "encoding", "is_bigendian", "step"):
+        assert getattr(parsed, field) == getattr(reference, field), field
+    assert bytes(parsed.data) == bytes(reference.data)
+    assert parsed.stamp_ns == -5 * 1_000_000_000 + 999_999_999
+    ours, theirs = image_to_working(parsed, 160), image_to_working(reference, 160)
+    assert np.array_equal(ours.image, theirs.image) and ours.factor == theirs.factor == 2
+
+
+def test_serialized_compressed_image_read_in_place():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import CompressedImage
+
+    from ptz_selfcal.nodes.conversions import parse_serialized_image
+
+    jpeg = cv2.imencode(".jpg", scene())[1].tobytes()
+    msg = CompressedImage(format="bgr8; jpeg compressed bgr8", data=jpeg)
+    msg.header.stamp.sec, msg.header.frame_id = 12, "ptz"
+    parsed = parse_serialized_image(serialize_message(msg), compressed=True)
+    assert (parsed.sec, parsed.frame_id, parsed.format) == (12, "ptz", msg.format)
+    assert bytes(parsed.data) == jpeg
+    assert compressed_to_working(parsed, 160).image.shape == (H // 2, W // 2)
+
+
+def test_serialized_image_big_endian_cdr():
+    """A big-endian publisher's CDR (encapsulation 0x0000), written by hand."""
+    import struct
+
+    from ptz_selfcal.nodes.conversions import parse_serialized_image
+
+    pixels = bytes(range(6))
+    body = struct.pack(">iII", 7, 8, 4) + b"cam\0" + struct.pack(">II", 2, 3) + struct.pack(">I", 6)
+    body += b"mono8\0" + b"\0" + b"\0" + struct.pack(">II", 3, 6) + pixels  # is_bigendian, pad to 4
+    parsed = parse_serialized_image(b"\x00\x00\x00\x00" + body)
+    assert (parsed.sec, parsed.nanosec, parsed.frame_id, parsed.height, parsed.width) == (7, 8, "cam", 2, 3)
+    assert (parsed.encoding, parsed.step, bytes(parsed.data)) == ("mono8", 3, pixels)
+
+
+def test_serialized_image_truncated_is_malformed_and_sizes_checked_on_the_view():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    from ptz_selfcal.nodes.conversions import parse_serialized_image
+
+    msg = Image(height=H, width=W, encoding="mono8", step=W)
+    msg.data = bytes(W * H)
+    data = serialize_message(msg)
+    # a data length beyond the end of the buffer (a truncated message) is refused without reading on
+    lying = data[: len(data) - W * H]  # the data field claims W * H bytes, none follow
+    with pytest.raises(FrameError) as exc:
+        parse_serialized_image(lying)
+    assert exc.value.kind == "malformed"
+    for cut in (0, 3):
+        assert parse_serialized_image(data[:cut]) is None  # no encapsulation header: not plain CDR
+    with pytest.raises(FrameError) as exc:
+        parse_serialized_image(data[:10])
+    assert exc.value.kind == "malformed"
+    assert parse_serialized_image(b"\x00\x07\x00\x00" + data[4:]) is None  # XCDR2: rclpy deserialises it
+    parsed = parse_serialized_image(data)
+    with pytest.raises(FrameError) as exc:
+        image_to_working(parsed, 160, ImageLimits(max_bytes=W * H - 1))
+    assert exc.value.kind == "too_large"

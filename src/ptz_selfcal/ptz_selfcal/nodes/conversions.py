@@ -149,6 +149,84 @@ def image_to_working(msg: Any, working_width: int, limits: ImageLimits | None = 
     return WorkingImage(_reduce(gray, factor), width, height, factor)
 
 
+# ---------------------------------------------------------------------------------------------------------
+# Serialized (CDR) sensor_msgs/Image and CompressedImage read in place: frame_ingest subscribes raw, checks
+# the sizes in the header and converts straight from the received buffer, so a huge image is refused
+# without being copied again (rclpy's deserialisation copies the pixels twice: into the C message, then into
+# a Python array) and a normal one is converted without those copies.
+
+
+@dataclass(frozen=True)
+class SerializedImage:
+    """The fields of sensor_msgs/Image (or, with `format`, CompressedImage) over a serialized message;
+    `data` is a read-only view into the received buffer."""
+
+    sec: int
+    nanosec: int
+    frame_id: str
+    data: memoryview
+    height: int = 0
+    width: int = 0
+    encoding: str = ""
+    is_bigendian: int = 0
+    step: int = 0
+    format: str = ""
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.sec * 1_000_000_000 + self.nanosec
+
+
+class _Cdr:
+    """Plain CDR (XCDR1, the encoding of ROS 2 messages on every Tier-1 RMW) read from a buffer: 4-byte
+    encapsulation header, then primitives aligned to their size relative to its end."""
+
+    def __init__(self, buf: memoryview) -> None:
+        self.buf = buf
+        self.order = "<" if buf[1] == 1 else ">"  # CDR_LE / CDR_BE
+        self.pos = 4
+
+    def _take(self, size: int, align: int) -> memoryview:
+        self.pos += -(self.pos - 4) % align
+        end = self.pos + size
+        if size < 0 or end > len(self.buf):
+            raise FrameError("malformed", f"serialized message of {len(self.buf)} bytes is truncated")
+        view, self.pos = self.buf[self.pos : end], end
+        return view
+
+    def u32(self) -> int:
+        return struct.unpack(self.order + "I", self._take(4, 4))[0]
+
+    def i32(self) -> int:
+        return struct.unpack(self.order + "i", self._take(4, 4))[0]
+
+    def u8(self) -> int:
+        return self._take(1, 1)[0]
+
+    def string(self) -> str:
+        raw = self._take(self.u32(), 1)
+        return bytes(raw).rstrip(b"\0").decode("utf-8", errors="replace")
+
+    def octets(self) -> memoryview:
+        return self._take(self.u32(), 1)
+
+
+def parse_serialized_image(buffer: bytes | memoryview, compressed: bool = False) -> SerializedImage | None:
+    """A serialized sensor_msgs/Image (or CompressedImage) read in place; None when its encapsulation is not
+    plain CDR (then use rclpy.serialization.deserialize_message); FrameError("malformed") when truncated."""
+    buf = memoryview(buffer).cast("B")
+    if len(buf) < 4 or buf[0] != 0 or buf[1] not in (0, 1):
+        return None
+    cdr = _Cdr(buf)
+    sec, nanosec, frame_id = cdr.i32(), cdr.u32(), cdr.string()
+    if compressed:
+        fmt = cdr.string()
+        return SerializedImage(sec, nanosec, frame_id, cdr.octets(), format=fmt)
+    height, width, encoding = cdr.u32(), cdr.u32(), cdr.string()
+    is_bigendian, step = cdr.u8(), cdr.u32()
+    return SerializedImage(sec, nanosec, frame_id, cdr.octets(), height, width, encoding, is_bigendian, step)
+
+
 def compressed_size(data: bytes | memoryview | np.ndarray) -> tuple[str, int, int] | None:
     """(kind, width, height) read from a PNG or JPEG header without decoding; None if not recognised.
     (0, 0) as the size when the header cannot be parsed."""

@@ -18,10 +18,13 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image, JointState
+from std_msgs.msg import Header
 
 from ptz_selfcal import topics
 from ptz_selfcal.core.encoders import EncoderConfig, EncoderInterpolator, QueryStatus
@@ -30,6 +33,7 @@ from ptz_selfcal.nodes.conversions import (
     FrameError,
     ImageLimits,
     Param,
+    SerializedImage,
     WorkingImage,
     compressed_to_working,
     declare_params,
@@ -38,6 +42,7 @@ from ptz_selfcal.nodes.conversions import (
     image_to_working,
     in_range,
     one_of,
+    parse_serialized_image,
     stamp_to_ns,
     stamp_to_sec,
 )
@@ -128,6 +133,16 @@ PARAMS = [
 ]
 
 
+_MAX_HEADER_BYTES = 65536  # serialized header, frame_id, encoding/format: more than any sane message has
+
+
+def _header_of(msg: Any) -> Header:
+    """std_msgs/Header of a deserialized message or of a SerializedImage (read in place)."""
+    if isinstance(msg, SerializedImage):
+        return Header(stamp=Time(sec=msg.sec, nanosec=msg.nanosec), frame_id=msg.frame_id)
+    return msg.header
+
+
 @dataclass
 class _Pending:
     frame: WorkingImage
@@ -182,10 +197,14 @@ class FrameIngest(Node):
         out_qos = reliable_qos() if p["queue_policy"] == "lossless" else reliable_qos(p["queue_depth"])
         self._pub = self.create_publisher(IngestedFrame, topics.FRAME_IN, out_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        # raw=True: the callback gets the serialized message, whose header is read in place, so a huge image
+        # is refused before any copy of its pixels and a good one is converted without rclpy's two copies
         if p["input"] in ("raw", "both"):
-            self.create_subscription(Image, topics.IMAGE_RAW, self._on_raw, sensor)
+            self.create_subscription(Image, topics.IMAGE_RAW, self._on_raw, sensor, raw=True)
         if p["input"] in ("compressed", "both"):
-            self.create_subscription(CompressedImage, topics.IMAGE_COMPRESSED, self._on_compressed, sensor)
+            self.create_subscription(
+                CompressedImage, topics.IMAGE_COMPRESSED, self._on_compressed, sensor, raw=True
+            )
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints, encoder_qos)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         # Retries only while frames wait (for encoders or a subscriber): an always-on 50 Hz timer costs
@@ -225,16 +244,49 @@ class FrameIngest(Node):
         """A counted anomaly that does not stop the frame (logged once per kind)."""
         self._warnings.warn_once(kind, f"{kind}: {message}")
 
-    def _on_raw(self, msg: Image) -> None:
+    def _on_raw(self, data: bytes) -> None:
         self._counts["frames_in_raw"] += 1
-        self._ingest(msg.header, lambda: image_to_working(msg, self._working_width, self._limits))
+        msg = self._read(data, Image)
+        if msg is not None:
+            self._ingest(msg, lambda: image_to_working(msg, self._working_width, self._limits))
 
-    def _on_compressed(self, msg: CompressedImage) -> None:
+    def _on_compressed(self, data: bytes) -> None:
         self._counts["frames_in_compressed"] += 1
-        self._ingest(msg.header, lambda: compressed_to_working(msg, self._working_width, self._limits))
+        msg = self._read(data, CompressedImage)
+        if msg is not None:
+            self._ingest(msg, lambda: compressed_to_working(msg, self._working_width, self._limits))
 
-    def _ingest(self, header: Any, convert: Any) -> None:
+    def _read(self, data: bytes, msg_type: Any) -> Any:
+        """A received serialized image with its header fields readable (pixels not copied); None (counted
+        and logged) when it is refused before conversion."""
+        try:
+            msg = parse_serialized_image(data, compressed=msg_type is CompressedImage)
+        except FrameError as exc:  # truncated: no stamp to go by
+            self._counts["frames_in"] += 1
+            self._skip(exc.kind, f"{msg_type.__name__}: {exc}")
+            return None
+        if msg is not None:
+            return msg
+        # Another encapsulation than plain CDR: deserialise the usual way, but never a payload that is too
+        # large anyway (the serialized size bounds the pixel data from above by a few hundred bytes).
+        if len(data) > self._limits.max_bytes + _MAX_HEADER_BYTES:
+            self._counts["frames_in"] += 1
+            self._skip(
+                "too_large",
+                f"serialized {msg_type.__name__} of {len(data)} bytes exceeds max_image_bytes="
+                f"{self._limits.max_bytes}",
+            )
+            return None
+        try:
+            return deserialize_message(data, msg_type)
+        except Exception as exc:  # rclpy raises several types for data it cannot read
+            self._counts["frames_in"] += 1
+            self._skip("malformed", f"{msg_type.__name__}: {type(exc).__name__}: {exc}")
+            return None
+
+    def _ingest(self, msg: Any, convert: Any) -> None:
         self._counts["frames_in"] += 1
+        header = _header_of(msg)
         stamp_ns = stamp_to_ns(header.stamp)
         if stamp_ns in self._recent_stamps:
             self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} was already ingested")
