@@ -44,7 +44,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from ptz_selfcal.core.atomic_file import atomic_write_text
+from ptz_selfcal.core.atomic_file import atomic_write_text, remove_stale_temporaries
 from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
 from ptz_selfcal.core.incremental import (
@@ -945,6 +945,8 @@ class CalibratorSession:
         messages: list[str] = []
         if self.state_dir is None:
             return messages
+        for tmp in remove_stale_temporaries(self.state_dir):
+            messages.append(f"removed {tmp}, the temporary file of a save interrupted by a kill")
         path = self.state_dir / STATE_FILE
         try:
             data = load_yaml_file(path)
