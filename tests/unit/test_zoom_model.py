@@ -297,3 +297,147 @@ def test_uncertainty_is_unknown_rather_than_zero_without_redundancy():
     for z in np.linspace(0.0, 1000.0, 6):
         few.add_sample(z, float(f_true(z)) * (1.0 + 0.01 * rng.normal()), 640.0, 360.0)
     assert few.sigma_f(500.0) > 0.0
+
+
+def test_exact_samples_give_the_lens_law_within_a_tenth_of_a_percent():
+    zooms = np.linspace(0.0, 1000.0, 40)
+    model = ZoomModel()
+    for z in zooms:
+        model.add_sample(z, float(f_true(z)), float(cx_true(z)), 360.0, *k12_true(z))
+    grid = np.linspace(0.0, 1000.0, 301)
+    f = np.array([model.predict(z).K[0, 0] for z in grid])
+    assert np.abs(f / f_true(grid) - 1.0).max() < 1e-3
+    assert np.all(np.diff(f) > 0.0)
+    assert model.predict(500.0).D[0] == pytest.approx(k12_true(500.0)[0], abs=2e-3)
+
+
+def live_samples(zooms, rel_error=0.0, sigma=0.004, keys=None):
+    keys = range(len(zooms)) if keys is None else keys
+    return {
+        k: (z, float(f_true(z)) * (1.0 + rel_error), float(cx_true(z)), 360.0, 0.0, 0.0, sigma**-2)
+        for k, z in zip(keys, zooms)
+    }
+
+
+def test_live_samples_are_replaced_by_later_estimates_and_committed_when_dropped():
+    model = ZoomModel()
+    zooms = np.linspace(100.0, 900.0, 12)
+    model.set_live(live_samples(zooms, rel_error=0.05))  # a first, poor solve: 5% too long
+    assert model.live_count == 12 and model.bin_count == 0
+    assert model.predict(500.0).K[0, 0] == pytest.approx(1.05 * float(f_true(500.0)), rel=2e-3)
+    model.set_live(live_samples(zooms))  # the bundle adjustment refined them: the 5% is gone
+    assert model.sample_count == 12
+    assert model.predict(500.0).K[0, 0] == pytest.approx(float(f_true(500.0)), rel=2e-3)
+    # keyframes 0..3 leave the calibration: their last estimates become history
+    model.set_live({k: v for k, v in live_samples(zooms).items() if k >= 4})
+    assert model.live_count == 8 and model.bin_count == 4 and model.sample_count == 12
+    assert model.commit_live(keep=[11]) == 7 and model.live_keys() == [11]
+    assert model.sample_count == 12 and model.covered_range() == pytest.approx((100.0, 900.0))
+    bounded = ZoomModel(max_live=5)
+    bounded.set_live(live_samples(zooms))
+    assert bounded.live_count == 5 and bounded.sample_count == 12
+
+
+def test_reloaded_history_is_kept_when_a_new_session_learns(tmp_path):
+    """Session 1 saw the wide end, session 2 (restarted on the saved model) the tele end."""
+    path = tmp_path / "zoom_model.yaml"
+    first = ZoomModel()
+    first.set_live(live_samples(np.linspace(0.0, 500.0, 15)))
+    first.save(path)
+    data = yaml.safe_load(path.read_text())
+    assert len(data["live"]) == 15  # a save keeps live samples live (a restored calibration refreshes them)
+    second = ZoomModel.load(path)
+    assert second.commit_live() == 15  # the session restarted without that calibration: history
+    second.set_live(live_samples(np.linspace(500.0, 1000.0, 15), keys=range(15)))  # ids reused
+    second.set_live(live_samples(np.linspace(500.0, 1000.0, 15), keys=range(15)))  # a re-solve
+    assert second.sample_count == 30 and second.covered_range() == pytest.approx((0.0, 1000.0))
+    for z in (50.0, 250.0, 750.0, 950.0):
+        assert second.predict(z).in_range
+        assert second.predict(z).K[0, 0] == pytest.approx(float(f_true(z)), rel=3e-3)
+    second.save(path)
+    third = ZoomModel.load(path)
+    assert third.sample_count == 30 and third.live_count == 15
+    assert third.predict(250.0).K[0, 0] == pytest.approx(second.predict(250.0).K[0, 0], rel=1e-12)
+
+
+def test_weights_and_robust_fit_keep_poorly_determined_keyframes_from_pulling_the_model():
+    zooms = np.linspace(0.0, 1000.0, 30)
+    samples = live_samples(zooms)
+    # the adjustment barely constrains two keyframes (6% sigma), which are 3% off
+    for k in (10, 11):
+        z, f, cx, cy, k1, k2, _ = samples[k]
+        samples[k] = (z, 1.03 * f, cx, cy, k1, k2, 0.06**-2)
+    # and one keyframe is 4% off although it claims the usual sigma (a gross outlier)
+    z, f, cx, cy, k1, k2, w = samples[20]
+    samples[20] = (z, 0.96 * f, cx, cy, k1, k2, w)
+    model = ZoomModel()
+    model.set_live(samples)
+    grid = np.linspace(0.0, 1000.0, 201)
+    rel = np.abs(np.array([model.predict(z).K[0, 0] for z in grid]) / f_true(grid) - 1.0)
+    assert rel.max() < 3e-3
+    unweighted = ZoomModel(huber=0.0)
+    unweighted.add_samples([s[:6] for s in samples.values()])
+    rel_u = np.abs(np.array([unweighted.predict(z).K[0, 0] for z in grid]) / f_true(grid) - 1.0)
+    assert rel_u.max() > 3.0 * rel.max()  # what the weights and the reweighting are worth
+
+
+def test_uncertainty_covers_a_common_scale_error_of_one_calibration():
+    """All keyframes of one calibration share its scale error (section 6.2): the model cannot average
+    it away, and its sigma_f (from the samples' own sigmas) says so."""
+    sigma = 0.004
+    model = ZoomModel()
+    model.set_live(live_samples(np.linspace(0.0, 1000.0, 30), rel_error=sigma, sigma=sigma))
+    for z in (100.0, 500.0, 900.0):
+        p = model.predict(z)
+        err = abs(p.K[0, 0] - float(f_true(z)))
+        assert err <= 2.0 * p.sigma_f and p.sigma_f < 3.0 * sigma * p.K[0, 0]
+
+
+def test_invalid_live_entries_in_a_well_formed_file(tmp_path):
+    path = tmp_path / "zoom_model.yaml"
+    model = ZoomModel()
+    model.set_live(live_samples(np.linspace(0.0, 1000.0, 8)))
+    model.save(path)
+    data = yaml.safe_load(path.read_text())
+    data["live"][3]["n"] = 2.0
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ZoomModelError, match="live"):
+        ZoomModel.load(path)
+    data["live"] = {"not": "a list"}
+    path.write_text(yaml.safe_dump(data))
+    fresh, reason = ZoomModel.load_or_new(path)
+    assert fresh.is_empty() and "live" in reason
+
+
+def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path):
+    """CalibratorSession: the saved model's samples survive a restart without the calibration state
+    (a new calibration on a new reference) and the new session's keyframes are added, not refitted."""
+    from test_calibration_state import HEIGHT as CS_H
+    from test_calibration_state import WIDTH as CS_W
+    from test_calibration_state import feed, sweep
+
+    from ptz_selfcal.core import calibration_state as cs
+
+    K, H, f = sweep(120)
+    first = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    feed(first, H, f)
+    learned = first.zoom_model.sample_count
+    assert learned >= 8 and first.zoom_model.live_count == learned  # the calibration's keyframes
+    first.save()
+    (tmp_path / cs.STATE_FILE).unlink()  # the calibration is not restored: a fresh one starts
+    second = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    messages = second.restore()
+    assert any("loaded zoom model" in m for m in messages), messages
+    assert second.zoom_model.live_count == 0 and second.zoom_model.sample_count == learned
+    # first frame after the restart, tracking lost: K from the saved model within 1%
+    out = second.process(cs.FrameInput(0.0, None, "TRACKING_LOST", CS_W, CS_H, zoom=float(f[60])))
+    assert out.status == cs.PREDICTED_FROM_ZOOM and abs(out.K[0, 0] / K[60][0, 0] - 1.0) < 0.01
+    feed(second, H, f)
+    assert second.zoom_model.sample_count >= learned + 8  # history plus the new calibration
+    assert second.zoom_model.live_count == second.zoom_model.sample_count - learned
+    for j in (10, 60, 110):
+        assert second.zoom_model.predict(float(f[j])).K[0, 0] == pytest.approx(K[j][0, 0], rel=5e-3)
+    total = second.zoom_model.sample_count
+    second.process(cs.FrameInput(9.0, H[5], "TRACKING", CS_W, CS_H, keyframe_id=0, reference_id="other"))
+    second.step(0.0)  # a new reference: the calibration is reset, its keyframes become history
+    assert second.zoom_model.live_count == 0 and second.zoom_model.sample_count == total

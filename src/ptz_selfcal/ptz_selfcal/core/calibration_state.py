@@ -200,6 +200,7 @@ class KeyframeBundleSolver:
         self.rotations: dict[Any, Array] = {}  # keyframe id -> R relative to the reference (last solve)
         self.last_method = ""
         self.last_message = ""
+        self.sigma_f: dict[Any, float] = {}  # keyframe id -> 1-sigma of f in the last accepted solve
 
     def __call__(
         self,
@@ -217,6 +218,9 @@ class KeyframeBundleSolver:
         result = self._refine(H, image_size, lm, keyframes)
         if result.ok:
             self.rotations = {kf.keyframe_id: R for kf, R in zip(keyframes, result.R[1:])}
+            # 1-sigma of each frame's f (the adjustment's Jacobian): the zoom model's sample weights
+            ids = [self.reference_keyframe_id, *(kf.keyframe_id for kf in keyframes)]
+            self.sigma_f = {k: float(s) for k, s in zip(ids, np.ravel(result.sigma_f)) if k is not None}
         return result
 
     def _refine(
@@ -804,24 +808,29 @@ class CalibratorSession:
         )
 
     def _learn_zoom_model(self, calibrator: IncrementalCalibrator) -> None:
-        """Converged keyframes (each once) become zoom model samples: zoom -> (f, cx, cy)."""
-        for kf in calibrator.keyframes:
-            kid = int(kf.keyframe_id)
-            zoom = self.keyframe_zoom.get(kid, math.nan)
-            if kid in self._sampled_keyframes or kf.K is None or not math.isfinite(zoom):
-                continue
-            K = kf.K
-            k1, k2 = self._distortion_of(K)[:2]
-            if self.zoom_model.add_sample(zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2):
-                self._sampled_keyframes.add(kid)
-                self.counters["zoom_model_samples"] += 1
+        """The converged calibration's keyframes (and reference) become the zoom model's LIVE samples,
+        zoom -> (f, cx, cy, k1, k2) with their latest (bundle-adjusted) estimates, weighted by 1 / sigma^2
+        of log f from the adjustment; a keyframe the calibration dropped is committed with its last one."""
+        solve = calibrator.last_solve
+        common = solve.sigma_f_ref / solve.K_ref[1, 1] if solve is not None else math.nan
+        frames = [(int(kf.keyframe_id), kf.K) for kf in calibrator.keyframes if kf.K is not None]
         ref = self.solver.reference_keyframe_id
-        if ref is not None and ref not in self._sampled_keyframes:
-            zoom = self.keyframe_zoom.get(ref, math.nan)
-            K = calibrator.reference_K
-            if math.isfinite(zoom) and self.zoom_model.add_sample(zoom, K[1, 1], K[0, 2], K[1, 2]):
-                self._sampled_keyframes.add(ref)
-                self.counters["zoom_model_samples"] += 1
+        if ref is not None:
+            frames.append((int(ref), calibrator.reference_K))
+        live: dict[int, tuple[float, ...]] = {}
+        for kid, K in frames:
+            zoom = self.keyframe_zoom.get(kid, math.nan)
+            if not math.isfinite(zoom):
+                continue
+            rel = self.solver.sigma_f.get(kid, math.nan) / K[1, 1]
+            rel = rel if math.isfinite(rel) and rel > 0.0 else common
+            weight = 1.0 / max(rel, 1e-4) ** 2 if math.isfinite(rel) and rel > 0.0 else 1.0
+            k1, k2 = self._distortion_of(K)[:2]
+            live[kid] = (zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2, weight)
+        self.zoom_model.set_live(live)
+        new = set(live) - self._sampled_keyframes
+        self._sampled_keyframes |= new
+        self.counters["zoom_model_samples"] += len(new)
         if len(self._sampled_keyframes) >= self.config.zoom_model_min_keyframes or self._zoom_ready:
             try:
                 self.zoom_model.predict(float(np.nanmedian(list(self.keyframe_zoom.values()))))
@@ -838,6 +847,7 @@ class CalibratorSession:
 
     def _do_reset(self) -> None:
         self._reset_requested = False
+        self.zoom_model.commit_live()  # the calibration they belonged to is gone: keep their last estimates
         self.calibrator = None
         self.matches.clear()
         self.keyframe_zoom.clear()
@@ -961,6 +971,13 @@ class CalibratorSession:
             messages.append(f"WARNING: ignoring calibration state {path} ({exc}); starting fresh")
         zpath = self.state_dir / ZOOM_MODEL_FILE
         model, problem = ZoomModel.load_or_new(zpath)
+        # live samples of keyframes the restored calibration still holds stay live (its next solve
+        # refreshes them); the others' calibration is gone: they become history
+        restored: set[Any] = set()
+        if self.calibrator is not None:
+            restored = {kf.keyframe_id for kf in self.calibrator.keyframes}
+            restored.add(self.solver.reference_keyframe_id)
+        model.commit_live(keep=restored)
         if problem is not None:
             messages.append(f"WARNING: ignoring zoom model {zpath} ({problem}); learning a new one")
         elif not model.is_empty():

@@ -8,13 +8,28 @@ a good K and D from the zoom encoder alone.
   sum w z, sum w q, sum w q^2 for q in log f, cx, cy, k1, k2). When more than `max_bins` bins are
   occupied the bin width doubles and neighbours merge (running sums merge exactly), so any encoder
   range fits in O(max_bins) memory however long the camera runs.
+- Live samples: the keyframes of the running calibration are re-estimated at every solve (bundle
+  adjustment refines them long after they were added), so they enter as LIVE samples keyed by keyframe
+  (`set_live`): each solve replaces them with the latest estimates, and a keyframe that leaves the
+  calibration is committed to the bins with its last (best) estimate. At most `max_live` are kept.
+  The bins are the history (reloaded from the file at start and never refitted away); the fit uses
+  bins and live samples together.
+- Weights: a sample's weight is 1 / sigma^2 of its log f (relative focal sigma from the bundle
+  adjustment's Jacobian); keyframes the adjustment pins down poorly count little.
 - zoom -> log f: a MONOTONE penalised cubic B-spline (non-decreasing coefficients give a non-decreasing
-  spline; the system knows only that f grows with zoom, DESIGN.md section 3). log f because zoom
-  lenses are close to exponential in their drive position. Outside the covered range log f is extended
-  linearly with the end slope and the uncertainty grows with the extrapolated change.
+  spline; the system knows only that f grows with zoom, DESIGN.md section 3), weighted, made robust by
+  Huber reweighting of the bins (a keyframe whose focal length is several sigma off its neighbours,
+  e.g. one the adjustment has not converged on yet, is down-weighted). log f because zoom lenses are
+  close to exponential in their drive position. Outside the covered range log f is extended linearly
+  with the end slope and the uncertainty grows with the extrapolated change.
 - zoom -> cx, cy, k1, k2: the same penalised spline without the monotone constraint; constant outside
   the covered range. k1, k2 enter the plumb_bob model linearly, so averaging them averages the curves.
-- Uncertainty: per bin, the standard error of the bin mean combined with the spline's misfit.
+- Uncertainty of log f: the weighted spline's own covariance at the zoom, scaled by the reduced
+  chi-square when the samples scatter more than their sigmas say, plus the typical per-sample sigma
+  near that zoom: the f / rotation near-ambiguity (section 6.2) makes one calibration's focal errors a
+  common scale factor that averaging its keyframes does not remove. Other quantities: per bin, the
+  standard error of the bin mean combined with the spline's misfit.
+- Visited range: [lowest, highest] zoom of the samples (committed and live); `in_range` says so.
 - Persistence: YAML with a format name and version, written atomically (temporary file in the same
   directory, flush + fsync, os.replace, directory fsync); any unreadable or invalid file raises
   ZoomModelError so the caller starts fresh.
@@ -28,7 +43,7 @@ import math
 import os
 import re
 import time
-from collections.abc import Iterable
+from collections.abc import Hashable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -68,6 +83,15 @@ class _Fit(NamedTuple):
     end_slopes: tuple[float, float]  # d log f / dz at z_lo and z_hi
     bin_z: Array
     bin_sigma: dict[str, Array]  # per-bin 1-sigma of each quantity (fit + mean)
+    log_f_cov: tuple[Array, Array, int, Array] | None  # knots, degree, coefficient covariance (scaled)
+
+
+class _SplineFit(NamedTuple):
+    spline: BSpline
+    fitted: Array
+    robust_weights: Array  # Huber factors in (0, 1] per point (ones without reweighting)
+    covariance: Array  # of the coefficients, scaled by the reduced chi-square (NaN without dof)
+    dof: float  # points minus the effective number of parameters
 
 
 def _design(x: Array, knots: Array, degree: int) -> Array:
@@ -75,9 +99,16 @@ def _design(x: Array, knots: Array, degree: int) -> Array:
 
 
 def _penalised_spline(
-    z: Array, y: Array, w: Array, n_basis: int, smoothing: float, monotone: bool
-) -> tuple[BSpline, Array]:
-    """Weighted P-spline (second-difference penalty), optionally with non-decreasing coefficients."""
+    z: Array,
+    y: Array,
+    w: Array,
+    n_basis: int,
+    smoothing: float,
+    monotone: bool,
+    huber: float | None = None,
+) -> _SplineFit:
+    """Weighted P-spline (second-difference penalty), optionally with non-decreasing coefficients and
+    Huber reweighting (threshold `huber` robust standard deviations of the weighted residuals)."""
     degree = min(3, n_basis - 1)
     lo, hi = float(z.min()), float(z.max())
     interior = np.linspace(lo, hi, n_basis - degree + 1)[1:-1]
@@ -86,17 +117,41 @@ def _penalised_spline(
     # c = L p, p = (c0, increments): increments >= 0 makes the spline monotone
     L = np.tril(np.ones((n_basis, n_basis))) if monotone else np.eye(n_basis)
     D2 = np.diff(np.eye(n_basis), n=2, axis=0) if n_basis >= 3 else np.zeros((0, n_basis))
-    sw = np.sqrt(w / w.mean())
-    A = np.vstack([(B * sw[:, None]) @ L, np.sqrt(smoothing) * D2 @ L])
-    b = np.concatenate([y * sw, np.zeros(len(D2))])
-    if monotone:
-        lower = np.full(n_basis, 0.0)
-        lower[0] = -np.inf
-        p = lsq_linear(A, b, bounds=(lower, np.full(n_basis, np.inf)), method="bvls").x
-    else:
-        p = np.linalg.lstsq(A, b, rcond=None)[0]
-    c = L @ p
-    return BSpline(knots, c, degree, extrapolate=False), B @ c
+    scale_w = float(w.mean())
+    robust = np.ones_like(w)
+    for _ in range(8 if huber else 1):
+        sw = np.sqrt(w * robust / scale_w)
+        A = np.vstack([(B * sw[:, None]) @ L, np.sqrt(smoothing) * D2 @ L])
+        b = np.concatenate([y * sw, np.zeros(len(D2))])
+        if monotone:
+            lower = np.full(n_basis, 0.0)
+            lower[0] = -np.inf
+            p = lsq_linear(A, b, bounds=(lower, np.full(n_basis, np.inf)), method="bvls").x
+        else:
+            p = np.linalg.lstsq(A, b, rcond=None)[0]
+        c = L @ p
+        if not huber:
+            break
+        r = np.abs(y - B @ c) * np.sqrt(w)  # residuals in sigmas of each point
+        s = max(1.4826 * float(np.median(r)), 1e-12)
+        new = np.minimum(1.0, huber * s / np.maximum(r, 1e-300))
+        done = np.allclose(new, robust, atol=1e-3)
+        robust = new
+        if done:
+            break
+    fitted = B @ c
+    # covariance of the (unconstrained) penalised estimate: (B'WB + lambda D'D)^-1 in absolute weights,
+    # scaled by the reduced chi-square (residual scatter against the weights)
+    wr = w * robust
+    M = B.T @ (B * wr[:, None]) + smoothing * scale_w * D2.T @ D2
+    try:
+        M_inv = np.linalg.inv(M)
+        dof = len(z) - float(np.trace(M_inv @ (B.T @ (B * wr[:, None]))))
+    except np.linalg.LinAlgError:
+        M_inv, dof = np.full((n_basis, n_basis), np.nan), 0.0
+    chi2 = float(np.sum(wr * (y - fitted) ** 2))
+    cov = M_inv * (chi2 / dof) if dof > 0.5 else np.full((n_basis, n_basis), np.nan)
+    return _SplineFit(BSpline(knots, c, degree, extrapolate=False), fitted, robust, cov, dof)
 
 
 class ZoomModel:
@@ -108,32 +163,76 @@ class ZoomModel:
         bin_width: float | None = None,
         max_basis: int = 10,
         smoothing: float = 1e-3,
+        max_live: int = 256,
+        huber: float = 2.5,
     ) -> None:
         if max_bins < 4:
             raise ValueError("max_bins must be >= 4")
+        if max_live < 0:
+            raise ValueError("max_live must be >= 0")
         self.max_bins = max_bins
         self.bin_width = bin_width
         self.max_basis = max_basis
         self.smoothing = smoothing
+        self.max_live = max_live
+        self.huber = huber
         self._bins: dict[int, Array] = {}
-        self._zoom_limits: tuple[float, float] | None = None  # lowest and highest zoom ever added
+        self._live: dict[Hashable, Array] = {}  # keyframe -> one sample's row (see _row)
+        self._zoom_limits: tuple[float, float] | None = None  # lowest and highest committed zoom
         self._fit: _Fit | None = None
 
     # ------------------------------------------------------------------------------------------ data
     @property
     def sample_count(self) -> int:
-        return int(sum(b[0] for b in self._bins.values()))
+        """Committed samples plus live ones."""
+        return int(sum(b[0] for b in self._bins.values())) + len(self._live)
 
     @property
     def bin_count(self) -> int:
         return len(self._bins)
 
+    @property
+    def live_count(self) -> int:
+        return len(self._live)
+
+    def live_keys(self) -> list[Hashable]:
+        return list(self._live)
+
     def is_empty(self) -> bool:
-        return not self._bins
+        return not self._bins and not self._live
 
     def covered_range(self) -> tuple[float, float] | None:
-        """(lowest, highest) zoom of the samples added, or None without data."""
-        return self._zoom_limits
+        """(lowest, highest) zoom of the samples (committed and live): the visited range, or None."""
+        zooms = [row[2] / row[1] for row in self._live.values()]
+        if self._zoom_limits is not None:
+            zooms += list(self._zoom_limits)
+        return (float(min(zooms)), float(max(zooms))) if zooms else None
+
+    @staticmethod
+    def _row(
+        zoom: float, f: float, cx: float, cy: float, k1: float, k2: float, weight: float
+    ) -> Array | None:
+        """Running-sum row of one sample (n, w, w z, w q, w q^2), or None if it is not usable."""
+        values = (zoom, f, cx, cy, k1, k2, weight)
+        if not all(math.isfinite(v) for v in values) or f <= 0.0 or weight <= 0.0:
+            return None
+        q = np.array([math.log(f), cx, cy, k1, k2])
+        return np.concatenate([[1.0, weight, weight * zoom], weight * q, weight * q * q])
+
+    def _commit_row(self, row: Array) -> None:
+        zoom = float(row[2] / row[1])
+        if self.bin_width is None:
+            self.bin_width = max(abs(zoom), 1.0) * 1e-6  # grows by doubling as the range is explored
+        key = math.floor(zoom / self.bin_width)
+        lo, hi = self._zoom_limits or (zoom, zoom)
+        self._zoom_limits = (min(lo, zoom), max(hi, zoom))
+        if key in self._bins:
+            self._bins[key] = self._bins[key] + row
+        else:
+            self._bins[key] = row.copy()
+        while len(self._bins) > self.max_bins:
+            self._coarsen()
+        self._fit = None
 
     def add_sample(
         self,
@@ -145,26 +244,39 @@ class ZoomModel:
         k2: float = 0.0,
         weight: float = 1.0,
     ) -> bool:
-        """Accumulate one calibrated frame; weight ~ 1 / sigma^2 (relative). Returns False if rejected."""
-        zoom, f, cx, cy, k1, k2, weight = (float(v) for v in (zoom, f, cx, cy, k1, k2, weight))
-        values = (zoom, f, cx, cy, k1, k2, weight)
-        if not all(math.isfinite(v) for v in values) or f <= 0.0 or weight <= 0.0:
+        """Commit one calibrated frame; weight = 1 / sigma^2 of log f (or relative). False if rejected."""
+        row = self._row(*(float(v) for v in (zoom, f, cx, cy, k1, k2, weight)))
+        if row is None:
             return False
-        if self.bin_width is None:
-            self.bin_width = max(abs(zoom), 1.0) * 1e-6  # grows by doubling as the range is explored
-        key = math.floor(zoom / self.bin_width)
-        q = np.array([math.log(f), cx, cy, k1, k2])
-        row = np.concatenate([[1.0, weight, weight * zoom], weight * q, weight * q * q])
-        lo, hi = self._zoom_limits or (zoom, zoom)
-        self._zoom_limits = (min(lo, zoom), max(hi, zoom))
-        if key in self._bins:
-            self._bins[key] += row
-        else:
-            self._bins[key] = row
-        while len(self._bins) > self.max_bins:
-            self._coarsen()
-        self._fit = None
+        self._commit_row(row)
         return True
+
+    def set_live(self, samples: Mapping[Hashable, tuple[float, ...]]) -> int:
+        """Replace the live samples by `samples` (keyframe -> (zoom, f, cx, cy, k1, k2, weight)), the
+        latest estimates of the running calibration's keyframes. A live keyframe absent from `samples`
+        has left the calibration: its last estimate is committed. Returns how many are live."""
+        live: dict[Hashable, Array] = {}
+        for key, sample in samples.items():
+            row = self._row(*(float(v) for v in sample))
+            if row is not None:
+                live[key] = row
+        for key in [k for k in self._live if k not in live]:
+            self._commit_row(self._live.pop(key))
+        while len(live) > self.max_live:  # bounded: the oldest entries are committed
+            self._commit_row(live.pop(next(iter(live))))
+        self._live = live
+        self._fit = None
+        return len(live)
+
+    def commit_live(self, keep: Iterable[Hashable] = ()) -> int:
+        """Commit the live samples except those in `keep` (e.g. the calibration was reset or not
+        restored); returns how many were committed."""
+        keep = set(keep)
+        gone = [k for k in self._live if k not in keep]
+        for key in gone:
+            self._commit_row(self._live.pop(key))
+        self._fit = None
+        return len(gone)
 
     def add_samples(self, samples: Iterable[tuple[float, ...]]) -> int:
         """Add (zoom, f, cx, cy[, k1, k2[, weight]]) tuples; returns how many were accepted."""
@@ -174,7 +286,8 @@ class ZoomModel:
         self, zooms: ArrayLike, Ks: ArrayLike, Ds: ArrayLike | None = None, weights: ArrayLike | None = None
     ) -> int:
         """Accumulate arrays of calibrations: zooms (N,), Ks (N, 3, 3) full-resolution, Ds (N, >=2)
-        plumb_bob or None, weights (N,) or None. f = fx. Returns how many were accepted."""
+        plumb_bob or None, weights (N,) or None. f = fx. Adds to what the model already holds (a
+        reloaded model keeps its history). Returns how many were accepted."""
         zooms = np.asarray(zooms, dtype=float).ravel()
         Ks = np.asarray(Ks, dtype=float).reshape(-1, 3, 3)
         Ds = np.zeros((len(zooms), 2)) if Ds is None else np.asarray(Ds, dtype=float).reshape(len(zooms), -1)
@@ -203,7 +316,7 @@ class ZoomModel:
 
     def ready(self) -> bool:
         """True once predict() can answer (at least one sample)."""
-        return bool(self._bins)
+        return not self.is_empty()
 
     def sigma_f(self, zoom: float) -> float:
         """1-sigma of the predicted focal length in pixels at this zoom."""
@@ -220,8 +333,17 @@ class ZoomModel:
         self.bin_width *= 2.0
 
     def _bin_table(self) -> tuple[Array, Array, Array, Array, Array]:
-        """Per bin (sorted by zoom): mean zoom, count, total weight, means (B, 5), variances (B, 5)."""
-        rows = np.array([self._bins[k] for k in sorted(self._bins)])
+        """Per bin of committed AND live samples (sorted by zoom): mean zoom, count, total weight,
+        means (B, 5), variances (B, 5)."""
+        bins = dict(self._bins)
+        width = self.bin_width
+        for row in self._live.values():
+            zoom = float(row[2] / row[1])
+            if width is None:
+                width = max(abs(zoom), 1.0) * 1e-6
+            key = math.floor(zoom / width)
+            bins[key] = bins[key] + row if key in bins else row
+        rows = np.array([bins[k] for k in sorted(bins)])
         n, w = rows[:, 0], rows[:, 1]
         z = rows[:, 2] / w
         mean = rows[:, 3:8] / w[:, None]
@@ -230,7 +352,7 @@ class ZoomModel:
 
     # ------------------------------------------------------------------------------------------- fit
     def _refit(self) -> _Fit:
-        if not self._bins:
+        if self.is_empty():
             raise ZoomModelError("the zoom model has no samples")
         z, n, w, mean, var = self._bin_table()
         n_bins = len(z)
@@ -242,30 +364,51 @@ class ZoomModel:
         constants: dict[str, float] = {}
         sigma: dict[str, Array] = {}
         slopes = (0.0, 0.0)
+        log_f_cov = None
         # keep one degree of freedom for the misfit once there are 3 bins (an interpolating spline
         # would claim zero uncertainty)
         n_basis = min(n_bins if n_bins < 3 else n_bins - 1, self.max_basis)
+        robust = np.ones(n_bins)
         for col, name in enumerate(QUANTITIES):
             y = mean[:, col]
+            wq = w * robust  # the focal fit's outliers are the same frames' other parameters too
             if n_bins == 1 or z.max() - z.min() <= 0.0:
                 splines[name] = None
-                constants[name] = float(np.average(y, weights=w))
+                constants[name] = float(np.average(y, weights=wq))
                 fitted = np.full_like(y, constants[name])
             else:
-                spline, fitted = _penalised_spline(
-                    z, y, w, n_basis, self.smoothing, monotone=(name == "log_f")
+                log_f = name == "log_f"
+                fit = _penalised_spline(
+                    z, y, wq, n_basis, self.smoothing, monotone=log_f, huber=self.huber if log_f else None
                 )
-                splines[name] = spline
-                constants[name] = float(np.average(y, weights=w))
-                if name == "log_f":
-                    d = spline.derivative()
+                fitted = fit.fitted
+                splines[name] = fit.spline
+                constants[name] = float(np.average(y, weights=wq))
+                if log_f:
+                    robust = fit.robust_weights
+                    d = fit.spline.derivative()
                     slopes = (max(float(d(z.min())), 0.0), max(float(d(z.max())), 0.0))
+                    log_f_cov = (fit.spline.t, fit.covariance, fit.spline.k, fitted)
             dof = n_bins - min(n_basis, n_bins)
-            misfit2 = float(np.sum(n * (y - fitted) ** 2) / np.sum(n)) * n_bins / dof if dof > 0 else 0.0
+            keep = robust > 0.5  # misfit of the points the fit trusts
+            misfit = np.sum((n * (y - fitted) ** 2)[keep]) / np.sum(n[keep])
+            misfit2 = float(misfit) * n_bins / dof if dof > 0 else 0.0
             sigma[name] = np.sqrt(se[:, col] ** 2 + misfit2)
             if dof == 0 and not np.any(n > 1):
                 sigma[name] = np.full(n_bins, np.nan)  # no replicate and no redundancy: unknown
-        return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma)
+        if log_f_cov is not None:
+            # log f: the spline's own covariance at each bin, plus the per-sample sigma there when the
+            # weights are 1 / sigma^2 (the calibrator's): one calibration's focal errors share a common
+            # scale (section 6.2) that averaging its keyframes does not remove. Unit weights (sigma
+            # unknown, 1/w = 100%) add nothing.
+            knots, cov, degree, _ = log_f_cov
+            B = _design(z, knots, degree)
+            fit_var = np.einsum("ij,jk,ik->i", B, cov, B)
+            per_sample2 = n / w
+            per_sample2 = np.where(per_sample2 < 0.25, per_sample2, 0.0)
+            if np.all(np.isfinite(fit_var)):
+                sigma["log_f"] = np.sqrt(fit_var + per_sample2)
+        return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma, log_f_cov)
 
     def _fitted(self) -> _Fit:
         if self._fit is None:
@@ -293,7 +436,7 @@ class ZoomModel:
         out["sigma_f"] = out["f"] * (sig["log_f"] + 0.5 * extrapolated)
         out["sigma_cx"], out["sigma_cy"] = sig["cx"], sig["cy"]
         out["sigma_k1"], out["sigma_k2"] = sig["k1"], sig["k2"]
-        lo, hi = self._zoom_limits or (fit.z_lo, fit.z_hi)
+        lo, hi = self.covered_range() or (fit.z_lo, fit.z_hi)
         out["in_range"] = bool(lo <= zoom <= hi)
         return out
 
@@ -310,8 +453,12 @@ class ZoomModel:
             {"key": int(k), **{name: float(v) for name, v in zip(_SUM_FIELDS, self._bins[k])}}
             for k in sorted(self._bins)
         ]
+        live = [
+            {"key": k if isinstance(k, int | str) else str(k), **dict(zip(_SUM_FIELDS, map(float, row)))}
+            for k, row in self._live.items()
+        ]
         summary = []
-        if self._bins:
+        if not self.is_empty():
             for z in self._bin_table()[0]:
                 p = self.predict_parameters(float(z))
                 summary.append({"zoom": float(z), "f": p["f"], "cx": p["cx"], "cy": p["cy"], "k1": p["k1"]})
@@ -323,9 +470,12 @@ class ZoomModel:
                 "bin_width": self.bin_width,
                 "max_basis": self.max_basis,
                 "smoothing": self.smoothing,
+                "max_live": self.max_live,
+                "huber": self.huber,
             },
             "zoom_limits": None if self._zoom_limits is None else [float(v) for v in self._zoom_limits],
             "bins": bins,
+            "live": live,  # the running calibration's keyframes (latest estimates), not yet committed
             "summary": summary,  # for humans; ignored on load (the model is refitted from the bins)
         }
 
@@ -348,6 +498,8 @@ class ZoomModel:
                 bin_width=None if width is None else float(width),
                 max_basis=int(settings["max_basis"]),
                 smoothing=float(settings["smoothing"]),
+                max_live=int(settings.get("max_live", 256)),
+                huber=float(settings.get("huber", 2.5)),
             )
             for entry in bins:
                 row = np.array([float(entry[name]) for name in _SUM_FIELDS])
@@ -355,6 +507,21 @@ class ZoomModel:
                 if not np.all(np.isfinite(row)) or row[0] < 1 or row[1] <= 0.0 or key in model._bins:
                     raise ZoomModelError(f"invalid zoom model bin {key}")
                 model._bins[key] = row
+            live = data.get("live") or []
+            if not isinstance(live, list) or len(live) > max(model.max_live, 0):
+                raise ZoomModelError("invalid live samples")
+            for entry in live:
+                row = np.array([float(entry[name]) for name in _SUM_FIELDS])
+                key = entry["key"]
+                if (
+                    not np.all(np.isfinite(row))
+                    or row[0] != 1.0
+                    or row[1] <= 0.0
+                    or not isinstance(key, int | str)
+                    or key in model._live
+                ):
+                    raise ZoomModelError(f"invalid live sample {key!r}")
+                model._live[key] = row
         except (KeyError, TypeError, ValueError) as exc:
             raise ZoomModelError(f"invalid zoom model file: {exc}") from exc
         limits = data.get("zoom_limits")
@@ -370,7 +537,7 @@ class ZoomModel:
             raise ZoomModelError("invalid bin width")
         if len(model._bins) > model.max_bins:
             raise ZoomModelError("more bins than max_bins")
-        if model._bins:
+        if not model.is_empty():
             try:
                 model._fitted()
             except (ValueError, np.linalg.LinAlgError) as exc:
