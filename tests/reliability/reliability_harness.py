@@ -795,13 +795,22 @@ def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: s
     # passes over the same views (measured 0.016 -> 0.075 % in benchmarks/reliability.py, section 2); a
     # calibration lost in the restart is off by 0.1 % (zoom model) to 10 % (nominal)
     threshold = 1.1 * max(ls.error(s) for s in before) + RESTART_SLACK
+    old = endpoints_of(feeder, victim)
     pid = started(launch_output())[victim][-1]
     os.kill(pid, signal.SIGKILL)
     killed = time.monotonic()
     assert feeder.spin(30.0, lambda: len(started(launch_output()).get(victim, [])) == 2), launch_output()
+    # A killed process's DDS endpoints stay in the graph until its participant's lease expires (`launch`
+    # sets 2 s; Fast DDS's default is 20 s), and frames sent meanwhile may go to the dead node: send none
+    # until the graph has the restarted node's endpoints and none of the dead one's.
+    reconnected = feeder.spin(
+        60.0,
+        lambda: not (endpoints_of(feeder, victim) & old) and len(endpoints_of(feeder, victim)) >= len(old),
+    )
+    assert reconnected, (len(old), len(endpoints_of(feeder, victim) & old), launch_output()[-3000:])
+    reconnect_s = time.monotonic() - killed
     feeder.wait_connected(30.0)
-    # A killed process's DDS endpoints stay in the graph until their lease expires, so the first frames
-    # after the restart may go to the dead node: probe until a frame comes through again.
+    # and should a frame still not come through, probe until one does (counted as lost)
     probe = None
     while probe is None and time.monotonic() - killed < 60.0:
         probe = ls.try_send(window[0], images[0], "probe", 2.0)
@@ -822,7 +831,20 @@ def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: s
         "before": float(np.median([ls.error(s) for s in before])),
         "after": float(np.median([ls.error(s) for s in after])),
         "recover_s": recover_s,
+        "reconnect_s": reconnect_s,
     }
+
+
+def endpoints_of(feeder: Feeder, node_name: str) -> set[bytes]:
+    """GIDs of the DDS endpoints (publishers and subscriptions, every topic) of the nodes named node_name,
+    as the feeder's graph sees them (a killed node's stay until its lease expires)."""
+    node = feeder.node
+    gids = set()
+    for topic, _types in node.get_topic_names_and_types():
+        for info in (*node.get_publishers_info_by_topic(topic), *node.get_subscriptions_info_by_topic(topic)):
+            if info.node_name == node_name:
+                gids.add(bytes(info.endpoint_gid))
+    return gids
 
 
 def zoom_preset_scenario(feeder: Feeder, width: int, height: int, warmup: int = 100) -> dict:

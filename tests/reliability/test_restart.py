@@ -83,8 +83,13 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
         worse, statuses = r["worse"], r["statuses"]
         print(
             f"{victim}: {r['lost']} frames lost in the restart, worse frames {worse}, statuses "
-            f"{statuses[:8]}..., recovered {r['recover_s']} s after the kill, threshold {r['threshold']:.5f}"
+            f"{statuses[:8]}..., reconnected {r['reconnect_s']:.2f} s and recovered {r['recover_s']} s after "
+            f"the kill, threshold {r['threshold']:.5f}"
         )
+        # The dead node's endpoints leave the graph after launch's 2 s DDS lease (not Fast DDS's 20 s), the
+        # restarted node's are there by then: once they are, no frame is lost.
+        assert r["reconnect_s"] < 15.0, r["reconnect_s"]
+        assert r["lost"] == 0, r["lost"]
         out = launch.output()
         assert f"{victim} exited unexpectedly with status -9" in out, out
         if victim == "calibrator":
@@ -93,7 +98,7 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
         # No CameraInfo worse than before the kill, not even one frame. A restarted tracker starts a new
         # map (new reference): the calibrator restarts its calibration on it and, until that converges,
         # publishes INITIALISING frames with K from the restored zoom model, which must be as good.
-        assert not worse, (worse, statuses)
+        assert not worse, (worse, statuses, f"median focal error before {r['before']}, after {r['after']}")
         if victim == "homography_tracker":
             assert set(statuses) <= rh.CALIBRATED | {"INITIALISING"}, statuses
         else:
@@ -107,8 +112,8 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
     # atomic replacement: every read was complete, files were really replaced, no temporary file is left
     assert watcher.reads > 50 and not watcher.bad, watcher.bad[:3]
     assert len({v for v in watcher.versions if v[0] == "calibration_state.yaml"}) >= 2
+    # (a kill during a save leaves its temporary file: the restarted calibrator removes it at its start)
     leftovers = [p.name for p in state_dir.iterdir() if p.name.endswith(".tmp")]
-    if victim != "calibrator":
-        assert not leftovers, leftovers
+    assert not leftovers, leftovers
     data = yaml.safe_load((state_dir / "calibration_state.yaml").read_text())
     assert data["calibrator"] is not None and np.isfinite(data["last_good"]["K"][0][0])

@@ -9,6 +9,12 @@ Ctrl-C/SIGTERM stops every child cleanly: SIGINT, wait, then SIGTERM and SIGKILL
 supervisor exits 0. Children get SIGTERM from the kernel if
 the supervisor itself is killed (PR_SET_PDEATHSIG), so no orphan survives it.
 
+A node killed outright (kill -9, a crash) cannot say goodbye: its DDS endpoints stay matched until its
+participant's lease expires (Fast DDS: 20 s), and frames published meanwhile go to the dead reader while
+the other nodes' wait-for-subscriber checks count it as there. With Fast DDS the nodes therefore get a
+participant lease of --dds-lease seconds (default 2) through a default XML profile, unless the
+environment already names a Fast DDS profile file.
+
 The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
 /ns/name, /**/name, /**) to {ros__parameters: {...}}. Plain node-name keys are rewritten to /**/name in a
 temporary copy so that they apply under any namespace.
@@ -40,6 +46,21 @@ NODE_MODULES = {
     "calibrator": "ptz_selfcal.nodes.calibrator",
 }
 CONFIG_ERROR_STATUS = 2  # nodes exit with this status on a configuration error
+PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+LEASE_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <participant profile_name="ptz_selfcal_launch" is_default_profile="true">
+    <rtps>
+      <builtin>
+        <discovery_config>
+          <leaseDuration><sec>{sec}</sec><nanosec>{nanosec}</nanosec></leaseDuration>
+          <leaseAnnouncement><sec>{announce_sec}</sec><nanosec>{announce_nanosec}</nanosec></leaseAnnouncement>
+        </discovery_config>
+      </builtin>
+    </rtps>
+  </participant>
+</profiles>
+"""
 
 
 def default_params_file() -> Path:
@@ -196,9 +217,11 @@ class Supervisor:
         echo: bool = True,
         log: Callable[[str], None] | None = None,
         nice: int | None = None,
+        env: dict[str, str] | None = None,
     ) -> None:
         self.children = [_Child(spec) for spec in specs]
         self.nice = nice
+        self.env = dict(env or {})  # added to the supervisor's environment for the nodes
         self.params_file = str(params_file) if params_file else None
         self.namespace = namespace
         self.remaps = list(remaps)
@@ -242,7 +265,7 @@ class Supervisor:
         return cmd + list(spec.args)
 
     def _spawn(self, child: _Child) -> None:
-        env = dict(os.environ)
+        env = {**os.environ, **self.env}
         env.setdefault("PYTHONUNBUFFERED", "1")
         env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
         child.process = subprocess.Popen(
@@ -391,10 +414,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run the nodes at niceness N (-20..19; negative needs CAP_SYS_NICE), e.g. -10 to keep a live "
         "camera's latency low on a machine busy with other work",
     )
+    parser.add_argument(
+        "--dds-lease",
+        type=float,
+        default=2.0,
+        metavar="SECONDS",
+        help="Fast DDS participant lease of the nodes: a killed node's endpoints leave the graph after this "
+        "long (middleware default 20 s); 0 keeps the middleware's or your profile's setting (default 2)",
+    )
     # Tests (and experiments) may replace a node's module: --node-module calibrator=my_package.my_node
     parser.add_argument(
         "--node-module", action="append", default=[], metavar="NAME=MODULE", help=argparse.SUPPRESS
     )
+
+
+def lease_environment(lease: float, directory: str, environ: dict[str, str] | None = None) -> dict[str, str]:
+    """Environment variables for the nodes that give their DDS participants a lease of `lease` seconds
+    (announced every lease / 4), so that a killed node's endpoints leave the graph that soon. Empty when
+    lease is 0, when the middleware is not Fast DDS or when the environment names a profile file already
+    (the user's configuration wins)."""
+    environ = os.environ if environ is None else environ
+    rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    if lease <= 0 or not rmw.startswith("rmw_fastrtps") or any(environ.get(v) for v in PROFILE_VARIABLES):
+        return {}
+
+    def split(seconds: float) -> dict[str, int]:
+        ns = round(seconds * 1e9)
+        return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+    announce = split(lease / 4)
+    text = LEASE_PROFILE.format(
+        **split(lease), announce_sec=announce["sec"], announce_nanosec=announce["nanosec"]
+    )
+    path = Path(directory) / "fastdds_lease.xml"
+    path.write_text(text)
+    return {PROFILE_VARIABLES[0]: str(path)}
 
 
 def prepare(
@@ -411,6 +465,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--stop-timeout must be > 0")
     if args.nice is not None and not -20 <= args.nice <= 19:
         raise CliError(f"--nice must be in [-20, 19], got {args.nice}")
+    if not (args.dds_lease == 0 or 0.5 <= args.dds_lease <= 3600):
+        raise CliError(f"--dds-lease must be 0 or in [0.5, 3600] s, got {args.dds_lease}")
     with tempfile.TemporaryDirectory(prefix="ptz_selfcal_launch_") as tmp:
         params_file, namespace, remaps = prepare(args.params, args.namespace, args.remap, tmp)
         modules = dict(NODE_MODULES)
@@ -422,7 +478,10 @@ def run(args: argparse.Namespace) -> int:
                 )
             modules[name] = module
         specs = [NodeSpec(name, modules[name]) for name in args.nodes]
-        supervisor = Supervisor(specs, params_file, namespace, remaps, nice=args.nice)
+        env = lease_environment(args.dds_lease, tmp)
+        supervisor = Supervisor(specs, params_file, namespace, remaps, nice=args.nice, env=env)
+        if env:
+            supervisor._log(f"DDS participant lease {args.dds_lease:g} s ({env[PROFILE_VARIABLES[0]]})")
         stop = threading.Event()
 
         def on_signal(signum: int, _frame: Any) -> None:
