@@ -92,3 +92,32 @@ def test_autostitch_focal_parses_scaled_blocks(tmp_path: Path) -> None:
     (tmp_path / "autostitch_pano.txt").write_text(block.format(0, 1, 700.0) + block.format(1, 2, 351.0))
     assert peers.autostitch_focal(tmp_path) == pytest.approx(701.0)
     assert peers.autostitch_focal(tmp_path / "missing") is None
+
+
+def test_opencv_cache_key_follows_pixels_and_config() -> None:
+    import peers
+
+    images = [np.full((8, 10), k, np.uint8) for k in range(3)]
+    config = opencv_peer.OpenCVConfig()
+    key = peers.opencv_cache_key(images, config)
+    assert key == peers.opencv_cache_key([im.copy() for im in images], config)
+    changed = [im.copy() for im in images]
+    changed[1][4, 5] += 1
+    assert peers.opencv_cache_key(changed, config) != key
+    assert peers.opencv_cache_key(images, opencv_peer.OpenCVConfig(features="orb")) != key
+
+
+def test_opencv_cache_round_trip(tmp_path: Path) -> None:
+    import peers
+
+    K = np.array([intrinsic_matrix(900.0 + k, 320.0, 240.0) for k in range(2)])
+    R = np.array([np.eye(3), ptz_rotation(0.1, 0.02)])
+    res = opencv_peer.OpenCVResult(np.array([0, 2]), K, R, 12.5, 3.25, True, "", {"features": 1.0})
+    path = tmp_path / "c" / "clean_key.npz"
+    peers.save_opencv_result(path, res, 4.2)
+    back, note = peers.load_opencv_result(path)
+    np.testing.assert_array_equal(back.indices, [0, 2])
+    np.testing.assert_allclose(back.K, K)
+    np.testing.assert_allclose(back.R, R)
+    assert (back.wall_time, back.cpu_time, back.ok, back.stage_times) == (12.5, 3.25, True, {"features": 1.0})
+    assert "load 4.2" in note and "reused" in note
