@@ -441,3 +441,40 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
     second.process(cs.FrameInput(9.0, H[5], "TRACKING", CS_W, CS_H, keyframe_id=0, reference_id="other"))
     second.step(0.0)  # a new reference: the calibration is reset, its keyframes become history
     assert second.zoom_model.live_count == 0 and second.zoom_model.sample_count == total
+
+
+def test_each_calibration_has_its_own_scale_error_levelled_where_they_overlap():
+    """Session 1 calibrated well (-0.2%, sigma 0.15%) but saw the tele end only through a few poor
+    keyframes; session 2 saw everything with a 1.4% scale error (sigma 0.6%): its offset, measured where
+    the two overlap, is removed at the tele end too (section 6.2: one scale error per calibration)."""
+
+    def sessions(model, separate):
+        model.set_live(live_samples(np.linspace(0.0, 600.0, 20), rel_error=-0.002, sigma=0.0015))
+        if separate:
+            model.new_calibration()
+        else:
+            model.commit_live()
+        model.set_live(live_samples(np.linspace(0.0, 1000.0, 30), rel_error=0.014, sigma=0.006))
+        return model
+
+    grid = np.linspace(0.0, 1000.0, 201)
+    levelled = sessions(ZoomModel(), separate=True)
+    pooled = sessions(ZoomModel(), separate=False)
+    err = np.abs([levelled.predict(z).K[0, 0] / float(f_true(z)) - 1.0 for z in grid])
+    err_pooled = np.abs([pooled.predict(z).K[0, 0] / float(f_true(z)) - 1.0 for z in grid])
+    assert err.max() < 4e-3 and err_pooled.max() > 0.01
+    assert levelled.calibration == 1 and levelled.sample_count == 50
+    # the offsets survive a save and a reload
+    again = ZoomModel.from_dict(yaml.safe_load(yaml.safe_dump(levelled.to_dict())))
+    assert again.predict(900.0).K[0, 0] == pytest.approx(levelled.predict(900.0).K[0, 0], rel=1e-9)
+
+
+def test_old_calibrations_merge_with_their_offsets_bounded_memory():
+    model = ZoomModel(max_calibrations=2)
+    for k, err in enumerate((0.003, -0.004, 0.002, -0.001)):
+        model.set_live(live_samples(np.linspace(100.0 * k, 600.0 + 100.0 * k, 15), rel_error=err))
+        model.new_calibration()
+    assert len({c for c, _ in model._bins}) <= 2 and model.sample_count == 60
+    grid = np.linspace(0.0, 900.0, 91)
+    err = np.abs([model.predict(z).K[0, 0] / float(f_true(z)) - 1.0 for z in grid])
+    assert err.max() < 4e-3

@@ -847,7 +847,7 @@ class CalibratorSession:
 
     def _do_reset(self) -> None:
         self._reset_requested = False
-        self.zoom_model.commit_live()  # the calibration they belonged to is gone: keep their last estimates
+        self.zoom_model.new_calibration()  # its calibration is gone: live samples become history
         self.calibrator = None
         self.matches.clear()
         self.keyframe_zoom.clear()
@@ -972,12 +972,12 @@ class CalibratorSession:
         zpath = self.state_dir / ZOOM_MODEL_FILE
         model, problem = ZoomModel.load_or_new(zpath)
         # live samples of keyframes the restored calibration still holds stay live (its next solve
-        # refreshes them); the others' calibration is gone: they become history
-        restored: set[Any] = set()
+        # refreshes them); without it they become history and a new calibration (scale) begins
         if self.calibrator is not None:
             restored = {kf.keyframe_id for kf in self.calibrator.keyframes}
-            restored.add(self.solver.reference_keyframe_id)
-        model.commit_live(keep=restored)
+            model.commit_live(keep=restored | {self.solver.reference_keyframe_id})
+        else:
+            model.new_calibration()
         if problem is not None:
             messages.append(f"WARNING: ignoring zoom model {zpath} ({problem}); learning a new one")
         elif not model.is_empty():

@@ -14,6 +14,13 @@ a good K and D from the zoom encoder alone.
   calibration is committed to the bins with its last (best) estimate. At most `max_live` are kept.
   The bins are the history (reloaded from the file at start and never refitted away); the fit uses
   bins and live samples together.
+- Calibrations: the f / rotation near-ambiguity (section 6.2) gives all focal lengths of one
+  calibration one common scale error, which differs between calibrations (sessions, resets). Samples
+  carry their calibration's id (`new_calibration` starts the next); the log f fit has one offset per
+  calibration with a zero-mean prior of that calibration's per-sample sigma, so calibrations are
+  levelled against each other where they overlap in zoom and a biased one cannot bend the curve where
+  it alone has data. Beyond `max_calibrations` the oldest merges into the next (shifted by the
+  difference of their offsets; bounded memory).
 - Weights: a sample's weight is 1 / sigma^2 of its log f (relative focal sigma from the bundle
   adjustment's Jacobian); keyframes the adjustment pins down poorly count little.
 - zoom -> log f: a MONOTONE penalised cubic B-spline (non-decreasing coefficients give a non-decreasing
@@ -84,14 +91,16 @@ class _Fit(NamedTuple):
     bin_z: Array
     bin_sigma: dict[str, Array]  # per-bin 1-sigma of each quantity (fit + mean)
     log_f_cov: tuple[Array, Array, int, Array] | None  # knots, degree, coefficient covariance (scaled)
+    offsets: dict[int, float]  # per calibration: its estimated log f scale offset (section 6.2)
 
 
 class _SplineFit(NamedTuple):
     spline: BSpline
-    fitted: Array
+    fitted: Array  # spline plus each point's group offset
     robust_weights: Array  # Huber factors in (0, 1] per point (ones without reweighting)
-    covariance: Array  # of the coefficients, scaled by the reduced chi-square (NaN without dof)
+    covariance: Array  # of the spline coefficients, scaled by the reduced chi-square (NaN without dof)
     dof: float  # points minus the effective number of parameters
+    offsets: Array  # per group (empty without groups)
 
 
 def _design(x: Array, knots: Array, degree: int) -> Array:
@@ -106,52 +115,73 @@ def _penalised_spline(
     smoothing: float,
     monotone: bool,
     huber: float | None = None,
+    groups: Array | None = None,
+    group_prior: Array | None = None,
 ) -> _SplineFit:
-    """Weighted P-spline (second-difference penalty), optionally with non-decreasing coefficients and
-    Huber reweighting (threshold `huber` robust standard deviations of the weighted residuals)."""
+    """Weighted P-spline (second-difference penalty), optionally with non-decreasing coefficients,
+    Huber reweighting (threshold `huber` robust standard deviations of the weighted residuals) and one
+    additive offset per group (groups[i] in 0..G-1) with a zero-mean prior of weight group_prior[g]
+    (1 / sigma^2): y_i = s(z_i) + offset[groups[i]] + noise."""
     degree = min(3, n_basis - 1)
     lo, hi = float(z.min()), float(z.max())
     interior = np.linspace(lo, hi, n_basis - degree + 1)[1:-1]
     knots = np.concatenate([np.full(degree + 1, lo), interior, np.full(degree + 1, hi)])
     B = _design(z, knots, degree)
+    n_groups = 0 if groups is None or group_prior is None else len(group_prior)
+    C = np.zeros((len(z), n_groups))
+    if n_groups:
+        C[np.arange(len(z)), np.asarray(groups, dtype=int)] = 1.0
     # c = L p, p = (c0, increments): increments >= 0 makes the spline monotone
     L = np.tril(np.ones((n_basis, n_basis))) if monotone else np.eye(n_basis)
     D2 = np.diff(np.eye(n_basis), n=2, axis=0) if n_basis >= 3 else np.zeros((0, n_basis))
     scale_w = float(w.mean())
+    prior = np.zeros(0) if not n_groups else np.asarray(group_prior, dtype=float) / scale_w
+    n_par = n_basis + n_groups
     robust = np.ones_like(w)
     for _ in range(8 if huber else 1):
         sw = np.sqrt(w * robust / scale_w)
-        A = np.vstack([(B * sw[:, None]) @ L, np.sqrt(smoothing) * D2 @ L])
-        b = np.concatenate([y * sw, np.zeros(len(D2))])
+        A = np.vstack(
+            [
+                np.hstack([(B * sw[:, None]) @ L, C * sw[:, None]]),
+                np.hstack([np.sqrt(smoothing) * D2 @ L, np.zeros((len(D2), n_groups))]),
+                np.hstack([np.zeros((n_groups, n_basis)), np.diag(np.sqrt(prior))]),
+            ]
+        )
+        b = np.concatenate([y * sw, np.zeros(len(D2) + n_groups)])
         if monotone:
-            lower = np.full(n_basis, 0.0)
-            lower[0] = -np.inf
-            p = lsq_linear(A, b, bounds=(lower, np.full(n_basis, np.inf)), method="bvls").x
+            lower = np.full(n_par, -np.inf)
+            lower[1:n_basis] = 0.0
+            x = lsq_linear(A, b, bounds=(lower, np.full(n_par, np.inf)), method="bvls").x
         else:
-            p = np.linalg.lstsq(A, b, rcond=None)[0]
-        c = L @ p
+            x = np.linalg.lstsq(A, b, rcond=None)[0]
+        c, offsets = L @ x[:n_basis], x[n_basis:]
         if not huber:
             break
-        r = np.abs(y - B @ c) * np.sqrt(w)  # residuals in sigmas of each point
+        r = np.abs(y - B @ c - C @ offsets) * np.sqrt(w)  # residuals in sigmas of each point
         s = max(1.4826 * float(np.median(r)), 1e-12)
         new = np.minimum(1.0, huber * s / np.maximum(r, 1e-300))
         done = np.allclose(new, robust, atol=1e-3)
         robust = new
         if done:
             break
-    fitted = B @ c
-    # covariance of the (unconstrained) penalised estimate: (B'WB + lambda D'D)^-1 in absolute weights,
-    # scaled by the reduced chi-square (residual scatter against the weights)
+    fitted = B @ c + C @ offsets
+    # covariance of the (unconstrained) penalised estimate, (X'WX + penalty + prior)^-1 in absolute
+    # weights with X = [B C], scaled by the reduced chi-square (residual scatter against the weights);
+    # the spline block is what a prediction needs (the offsets marginalised)
     wr = w * robust
-    M = B.T @ (B * wr[:, None]) + smoothing * scale_w * D2.T @ D2
+    X = np.hstack([B, C])
+    XtWX = X.T @ (X * wr[:, None])
+    P = np.zeros((n_par, n_par))
+    P[:n_basis, :n_basis] = smoothing * scale_w * D2.T @ D2
+    P[n_basis:, n_basis:] = np.diag(prior * scale_w)
     try:
-        M_inv = np.linalg.inv(M)
-        dof = len(z) - float(np.trace(M_inv @ (B.T @ (B * wr[:, None]))))
+        M_inv = np.linalg.inv(XtWX + P)
+        dof = len(z) - float(np.trace(M_inv @ XtWX))
     except np.linalg.LinAlgError:
-        M_inv, dof = np.full((n_basis, n_basis), np.nan), 0.0
+        M_inv, dof = np.full((n_par, n_par), np.nan), 0.0
     chi2 = float(np.sum(wr * (y - fitted) ** 2))
-    cov = M_inv * (chi2 / dof) if dof > 0.5 else np.full((n_basis, n_basis), np.nan)
-    return _SplineFit(BSpline(knots, c, degree, extrapolate=False), fitted, robust, cov, dof)
+    cov = M_inv[:n_basis, :n_basis] * (chi2 / dof) if dof > 0.5 else np.full((n_basis, n_basis), np.nan)
+    return _SplineFit(BSpline(knots, c, degree, extrapolate=False), fitted, robust, cov, dof, offsets)
 
 
 class ZoomModel:
@@ -165,18 +195,23 @@ class ZoomModel:
         smoothing: float = 1e-3,
         max_live: int = 256,
         huber: float = 2.5,
+        max_calibrations: int = 8,
     ) -> None:
         if max_bins < 4:
             raise ValueError("max_bins must be >= 4")
         if max_live < 0:
             raise ValueError("max_live must be >= 0")
+        if max_calibrations < 1:
+            raise ValueError("max_calibrations must be >= 1")
         self.max_bins = max_bins
         self.bin_width = bin_width
         self.max_basis = max_basis
         self.smoothing = smoothing
         self.max_live = max_live
         self.huber = huber
-        self._bins: dict[int, Array] = {}
+        self.max_calibrations = max_calibrations
+        self.calibration = 0  # id of the running calibration: its samples share one scale error
+        self._bins: dict[tuple[int, int], Array] = {}  # (calibration, zoom bin) -> running sums
         self._live: dict[Hashable, Array] = {}  # keyframe -> one sample's row (see _row)
         self._zoom_limits: tuple[float, float] | None = None  # lowest and highest committed zoom
         self._fit: _Fit | None = None
@@ -219,11 +254,12 @@ class ZoomModel:
         q = np.array([math.log(f), cx, cy, k1, k2])
         return np.concatenate([[1.0, weight, weight * zoom], weight * q, weight * q * q])
 
-    def _commit_row(self, row: Array) -> None:
+    def _commit_row(self, row: Array, calibration: int | None = None) -> None:
         zoom = float(row[2] / row[1])
         if self.bin_width is None:
             self.bin_width = max(abs(zoom), 1.0) * 1e-6  # grows by doubling as the range is explored
-        key = math.floor(zoom / self.bin_width)
+        cal = self.calibration if calibration is None else calibration
+        key = (cal, math.floor(zoom / self.bin_width))
         lo, hi = self._zoom_limits or (zoom, zoom)
         self._zoom_limits = (min(lo, zoom), max(hi, zoom))
         if key in self._bins:
@@ -278,6 +314,30 @@ class ZoomModel:
         self._fit = None
         return len(gone)
 
+    def new_calibration(self) -> int:
+        """The running calibration ended (reset, new reference, restart without its state): its live
+        samples are committed and later samples belong to a new calibration with its own scale error
+        (section 6.2). Beyond `max_calibrations` the oldest is merged into the next, shifted by the
+        difference of their estimated scale offsets. Returns the new calibration id."""
+        self.commit_live()
+        self.calibration += 1
+        self._fit = None
+        cals = sorted({c for c, _ in self._bins})
+        while len(cals) > self.max_calibrations:
+            oldest, nxt = cals[0], cals[1]
+            offsets = self._fitted().offsets
+            shift = offsets.get(nxt, 0.0) - offsets.get(oldest, 0.0)
+            for key in [k for k in self._bins if k[0] == oldest]:
+                row = self._bins.pop(key).copy()
+                w, wq = row[1], row[3]
+                row[3] = wq + w * shift  # log f -> log f + shift: sum w q and sum w q^2 exactly
+                row[8] = row[8] + 2.0 * shift * wq + w * shift * shift
+                target = (nxt, key[1])
+                self._bins[target] = self._bins[target] + row if target in self._bins else row
+            self._fit = None
+            cals = cals[1:]
+        return self.calibration
+
     def add_samples(self, samples: Iterable[tuple[float, ...]]) -> int:
         """Add (zoom, f, cx, cy[, k1, k2[, weight]]) tuples; returns how many were accepted."""
         return sum(self.add_sample(*s) for s in samples)
@@ -325,37 +385,47 @@ class ZoomModel:
     def _coarsen(self) -> None:
         """Double the bin width; running sums of merged bins simply add."""
         assert self.bin_width is not None
-        merged: dict[int, Array] = {}
-        for key, row in self._bins.items():
-            new = key // 2
+        merged: dict[tuple[int, int], Array] = {}
+        for (cal, key), row in self._bins.items():
+            new = (cal, key // 2)
             merged[new] = merged[new] + row if new in merged else row.copy()
         self._bins = merged
         self.bin_width *= 2.0
 
-    def _bin_table(self) -> tuple[Array, Array, Array, Array, Array]:
+    def _bin_table(self) -> tuple[Array, Array, Array, Array, Array, Array]:
         """Per bin of committed AND live samples (sorted by zoom): mean zoom, count, total weight,
-        means (B, 5), variances (B, 5)."""
+        means (B, 5), variances (B, 5), calibration id."""
         bins = dict(self._bins)
         width = self.bin_width
         for row in self._live.values():
             zoom = float(row[2] / row[1])
             if width is None:
                 width = max(abs(zoom), 1.0) * 1e-6
-            key = math.floor(zoom / width)
+            key = (self.calibration, math.floor(zoom / width))
             bins[key] = bins[key] + row if key in bins else row
-        rows = np.array([bins[k] for k in sorted(bins)])
+        keys = sorted(bins, key=lambda k: (k[1], k[0]))
+        rows = np.array([bins[k] for k in keys])
         n, w = rows[:, 0], rows[:, 1]
         z = rows[:, 2] / w
         mean = rows[:, 3:8] / w[:, None]
         var = np.maximum(rows[:, 8:13] / w[:, None] - mean**2, 0.0)
-        return z, n, w, mean, var
+        return z, n, w, mean, var, np.array([k[0] for k in keys])
 
     # ------------------------------------------------------------------------------------------- fit
     def _refit(self) -> _Fit:
         if self.is_empty():
             raise ZoomModelError("the zoom model has no samples")
-        z, n, w, mean, var = self._bin_table()
+        z, n, w, mean, var, cal = self._bin_table()
         n_bins = len(z)
+        # one log f offset per calibration (its common scale error, section 6.2) with a zero-mean
+        # prior of its typical per-sample sigma: calibrations that overlap in zoom are levelled against
+        # each other, the model sits at their precision-weighted mean
+        cal_ids, groups = np.unique(cal, return_inverse=True)
+        group_prior = None
+        if len(cal_ids) > 1:
+            group_prior = np.array(
+                [1.0 / float(np.median(n[groups == g] / w[groups == g])) for g in range(len(cal_ids))]
+            )
         # standard error of each bin mean: its own spread, or the pooled spread for single samples
         pooled = np.sum(var * n[:, None], axis=0) / max(np.sum(np.maximum(n - 1, 0)), 1)
         spread = np.where((n > 1)[:, None], var * n[:, None] / np.maximum(n - 1, 1)[:, None], pooled)
@@ -365,6 +435,7 @@ class ZoomModel:
         sigma: dict[str, Array] = {}
         slopes = (0.0, 0.0)
         log_f_cov = None
+        offsets: dict[int, float] = {}
         # keep one degree of freedom for the misfit once there are 3 bins (an interpolating spline
         # would claim zero uncertainty)
         n_basis = min(n_bins if n_bins < 3 else n_bins - 1, self.max_basis)
@@ -379,7 +450,15 @@ class ZoomModel:
             else:
                 log_f = name == "log_f"
                 fit = _penalised_spline(
-                    z, y, wq, n_basis, self.smoothing, monotone=log_f, huber=self.huber if log_f else None
+                    z,
+                    y,
+                    wq,
+                    n_basis,
+                    self.smoothing,
+                    monotone=log_f,
+                    huber=self.huber if log_f else None,
+                    groups=groups if log_f else None,
+                    group_prior=group_prior if log_f else None,
                 )
                 fitted = fit.fitted
                 splines[name] = fit.spline
@@ -389,6 +468,7 @@ class ZoomModel:
                     d = fit.spline.derivative()
                     slopes = (max(float(d(z.min())), 0.0), max(float(d(z.max())), 0.0))
                     log_f_cov = (fit.spline.t, fit.covariance, fit.spline.k, fitted)
+                    offsets = {int(c): float(o) for c, o in zip(cal_ids, fit.offsets)}
             dof = n_bins - min(n_basis, n_bins)
             keep = robust > 0.5  # misfit of the points the fit trusts
             misfit = np.sum((n * (y - fitted) ** 2)[keep]) / np.sum(n[keep])
@@ -399,16 +479,16 @@ class ZoomModel:
         if log_f_cov is not None:
             # log f: the spline's own covariance at each bin, plus the per-sample sigma there when the
             # weights are 1 / sigma^2 (the calibrator's): one calibration's focal errors share a common
-            # scale (section 6.2) that averaging its keyframes does not remove. Unit weights (sigma
-            # unknown, 1/w = 100%) add nothing.
+            # scale (section 6.2) that averaging its keyframes does not remove, only averaging over
+            # calibrations. Unit weights (sigma unknown, 1/w = 100%) add nothing.
             knots, cov, degree, _ = log_f_cov
             B = _design(z, knots, degree)
             fit_var = np.einsum("ij,jk,ik->i", B, cov, B)
             per_sample2 = n / w
-            per_sample2 = np.where(per_sample2 < 0.25, per_sample2, 0.0)
+            per_sample2 = np.where(per_sample2 < 0.25, per_sample2, 0.0) / len(cal_ids)
             if np.all(np.isfinite(fit_var)):
                 sigma["log_f"] = np.sqrt(fit_var + per_sample2)
-        return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma, log_f_cov)
+        return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma, log_f_cov, offsets)
 
     def _fitted(self) -> _Fit:
         if self._fit is None:
@@ -450,8 +530,8 @@ class ZoomModel:
     # ----------------------------------------------------------------------------------- persistence
     def to_dict(self) -> dict[str, Any]:
         bins = [
-            {"key": int(k), **{name: float(v) for name, v in zip(_SUM_FIELDS, self._bins[k])}}
-            for k in sorted(self._bins)
+            {"calibration": int(c), "key": int(k), **dict(zip(_SUM_FIELDS, map(float, self._bins[(c, k)])))}
+            for c, k in sorted(self._bins)
         ]
         live = [
             {"key": k if isinstance(k, int | str) else str(k), **dict(zip(_SUM_FIELDS, map(float, row)))}
@@ -472,6 +552,8 @@ class ZoomModel:
                 "smoothing": self.smoothing,
                 "max_live": self.max_live,
                 "huber": self.huber,
+                "max_calibrations": self.max_calibrations,
+                "calibration": self.calibration,  # the running calibration (its samples are the live ones)
             },
             "zoom_limits": None if self._zoom_limits is None else [float(v) for v in self._zoom_limits],
             "bins": bins,
@@ -500,10 +582,12 @@ class ZoomModel:
                 smoothing=float(settings["smoothing"]),
                 max_live=int(settings.get("max_live", 256)),
                 huber=float(settings.get("huber", 2.5)),
+                max_calibrations=int(settings.get("max_calibrations", 8)),
             )
+            model.calibration = int(settings.get("calibration", 0))
             for entry in bins:
                 row = np.array([float(entry[name]) for name in _SUM_FIELDS])
-                key = int(entry["key"])
+                key = (int(entry.get("calibration", 0)), int(entry["key"]))
                 if not np.all(np.isfinite(row)) or row[0] < 1 or row[1] <= 0.0 or key in model._bins:
                     raise ZoomModelError(f"invalid zoom model bin {key}")
                 model._bins[key] = row
