@@ -68,6 +68,8 @@ BA_ITERATIONS = 10
 SESSION_BUDGET_S = 0.5  # the calibrator node's default reoptimise_budget
 # A fixed lens (the real sets): constant unknown focal length and principal point, square pixels.
 FIXED_LENS = IntrinsicsModel(focal=ParamMode.CONSTANT)
+# The same with the principal point known at the image centre (the paper's strongest constraint set).
+FIXED_LENS_KNOWN_PP = IntrinsicsModel(focal=ParamMode.CONSTANT, principal_point=ParamMode.KNOWN)
 RESULTS = Path(__file__).resolve().parent / "results" / "peers.txt"
 
 
@@ -615,13 +617,15 @@ def bundle_solver(
     return solve
 
 
-def make_calibrator(seq: Sequence, reference_id: int, distortion: bool = False):
+def make_calibrator(
+    seq: Sequence, reference_id: int, distortion: bool = False, model: IntrinsicsModel = FIXED_LENS
+):
     """The calibrator as the node runs it; a fixed lens (real sets) gets a constant-focal model."""
     from ptz_selfcal.core.incremental import IncrementalCalibrator
 
     if seq.fixed_focal:
         solver = bundle_solver(reference_id, analyse=False, use_prior=True, distortion=distortion)
-        calibrator = IncrementalCalibrator(seq.size, FIXED_LENS, solver=solver, min_keyframes=2)
+        calibrator = IncrementalCalibrator(seq.size, model, solver=solver, min_keyframes=2)
     else:
         calibrator = IncrementalCalibrator(seq.size, solver=bundle_solver(reference_id))
     calibrator.reference_id = reference_id
@@ -646,6 +650,7 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
     if lens is not None:
         session.distortion_model = lens.distortion
     published: dict[int, tuple[Array, Array]] = {}
+    statuses: dict[str, int] = {}
     w, h = seq.size
 
     def on_frame(i: int, frame: np.ndarray, scale: float, result) -> None:
@@ -665,6 +670,7 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
         out = session.process(FrameInput(i / FPS, H, state, w, h, kid, ref))
         if out.source == "calibration" and out.R is not None:
             published[i] = (out.K, out.R)
+        statuses[out.status] = statuses.get(out.status, 0) + 1
         session.step(SESSION_BUDGET_S)
         if lens is not None:
             lens.work(session)
@@ -675,6 +681,8 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
     rows = [published_row(name, seq, published, ms)]
     if lens is not None:
         rows[0].note += "; estimate_distortion: true"
+    if not published:
+        rows[0].note += f" (published statuses {statuses})"
     calibrator = session.calibrator
     if calibrator is not None and session.reference_id not in (None, ""):
         calibrator.reference_id = int(session.reference_id)  # the map the session calibrated last
@@ -709,7 +717,9 @@ def fixed_lens_intrinsics(calibrator, H: Array) -> tuple[Array, Array]:
     return K, rotation_from_homography(H, K, K)
 
 
-def run_fixed_lens(seq: Sequence, distortion: bool = False) -> tuple[list[MethodResult], Tracking]:
+def run_fixed_lens(
+    seq: Sequence, distortion: bool = False, known_pp: bool = False
+) -> tuple[list[MethodResult], Tracking]:
     """Real sets (a fixed lens): IncrementalCalibrator with a constant-focal model, LM + link BA
     (with `distortion`, the BA also fits radial distortion). The notes split the CPU time between the
     photo front end (features, matching, homographies) and the calibration."""
@@ -725,7 +735,8 @@ def run_fixed_lens(seq: Sequence, distortion: bool = False) -> tuple[list[Method
             return
         c0 = time.process_time()
         if calibrator is None or result.reference_id != calibrator.reference_id:
-            calibrator = make_calibrator(seq, result.reference_id, distortion)
+            model = FIXED_LENS_KNOWN_PP if known_pp else FIXED_LENS
+            calibrator = make_calibrator(seq, result.reference_id, distortion, model)
         new = result.state in (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)
         if new and result.keyframe_id is not None and result.keyframe_id != result.reference_id:
             state = calibrator.add_keyframe(result.keyframe_id, result.H_ref, i / FPS, matches=result.links)
@@ -743,9 +754,8 @@ def run_fixed_lens(seq: Sequence, distortion: bool = False) -> tuple[list[Method
         f"CPU/frame: front end {1000.0 * (tracking.cpu_seconds - calib_cpu) / n:.0f} ms ({stages}), "
         f"calibration {1000.0 * calib_cpu / n:.0f} ms"
     )
-    name = (
-        "ptz_selfcal fixed lens + radial dist. (BA)" if distortion else "ptz_selfcal fixed lens (const f+BA)"
-    )
+    name = "ptz_selfcal fixed lens" + (", pp known=centre" if known_pp else "")
+    name += " + radial dist. (BA)" if distortion else " (const f+BA)"
     rows = [published_row(name, seq, published, ms)]
     rows[0].note += f"; {split}"
     final = final_state_row(seq, tracking, calibrator, ms)
@@ -841,14 +851,14 @@ def _fmt(value: float, spec: str) -> str:
 
 
 HEADER = (
-    f"{'input':<11} {'method':<58} {'online':<6} {'frames':>7} {'f med%':>8} {'f p90%':>8} {'pp px':>7} "
+    f"{'input':<11} {'method':<66} {'online':<6} {'frames':>7} {'f med%':>8} {'f p90%':>8} {'pp px':>7} "
     f"{'rot deg':>8} {'wall ms':>8} {'cpu ms':>8} {'f-AS %':>7} {'f-OCV %':>7}  note"
 )
 
 
 def format_row(r: Row) -> str:
     return (
-        f"{r.input:<11} {r.method[:58]:<58} {'yes' if r.online else 'no':<6} {r.frames:>7} "
+        f"{r.input:<11} {r.method[:66]:<66} {'yes' if r.online else 'no':<6} {r.frames:>7} "
         f"{_fmt(r.f_med, '.3f'):>8} {_fmt(r.f_p90, '.3f'):>8} {_fmt(r.pp_med, '.2f'):>7} "
         f"{_fmt(r.rot_med, '.4f'):>8} {_fmt(r.ms, '.1f'):>8} {_fmt(r.cpu_ms, '.1f'):>8} "
         f"{_fmt(r.f_vs_autostitch, '.2f'):>7} "
@@ -975,7 +985,8 @@ def run_input(
 ) -> list[Row]:
     online, tracking = run_session(seq)
     if seq.fixed_focal:
-        online += run_fixed_lens(seq)[0] + run_fixed_lens(seq, distortion=True)[0]
+        for distortion, known_pp in ((False, False), (False, True), (True, False)):
+            online += run_fixed_lens(seq, distortion, known_pp)[0]
     log(f"  [{seq.name}] tracked {len(seq.frames)} frames in {tracking.seconds:.1f} s")
     ocv = run_opencv(seq, features, cache)
     log(f"  [{seq.name}] OpenCV: {ocv.ms_per_frame:.0f} ms/frame {ocv.note}")
