@@ -314,3 +314,59 @@ def test_absurd_parameter_exits_with_a_clear_error(ros_env, start_process):
     proc = start_process(node_command(MODULE, "-p", "joint_names:=[pan,tilt]"), ros_env, "bad_joints")
     assert proc.wait(20.0) == 2
     assert "joint_names must be three distinct names" in proc.output()
+
+
+def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_env, start_process):
+    """Encoder messages that piled up while the node had no CPU (here: SIGSTOP) are all taken in the next
+    encoder callback. The executor hands over one message per subscription and wake-up, so with frames
+    arriving as often as encoder messages such a backlog never shrank under load and every frame waited
+    behind it (benchmarks/reliability.py, overload: p95 latency grew over the run); and a frame could
+    take the held value of the last sample taken before its stamp (max_hold) instead of interpolating
+    between the samples already received around it."""
+    import os
+    import signal
+
+    proc = start_process(
+        node_command(
+            MODULE, "-p", "working_width:=160", "-p", "diagnostics_period:=0.2", "-p", "queue_policy:=latest",
+            "-p", "queue_depth:=1", "-p", "sensor_reliability:=reliable", "-p", "encoder_wait:=2.0",
+        ),
+        ros_env,
+        "frame_ingest_backlog",
+    )  # fmt: skip
+    h = Harness()
+    try:
+        h.wait_connected()
+        for k in range(10):  # encoders known before the stop: the frame waits for newer ones
+            h.joints.publish(joint_msg(299.8 + k / 60.0, true_encoders(299.8 + k / 60.0)))
+        h.spin(0.5)
+        n = 80
+        times = [300.0 + k / 60.0 for k in range(n)]
+        os.kill(proc.pid, signal.SIGSTOP)
+        try:
+            for t in times:
+                h.joints.publish(joint_msg(t, true_encoders(t)))
+            bgr = scene(10)
+            h.raw.publish(image_msg(times[-2], bgr, "bgr8"))
+            h.spin(0.5)
+        finally:
+            os.kill(proc.pid, signal.SIGCONT)
+        assert h.spin(10.0, lambda: len(h.frames) == 1), proc.output()
+        frame = h.frames[0]
+        assert frame.encoders.valid
+        np.testing.assert_allclose(
+            [frame.encoders.pan, frame.encoders.tilt, frame.encoders.zoom],
+            true_encoders(times[-2]),
+            atol=1e-9,
+        )
+
+        def counted() -> bool:
+            return bool(h.diagnostics) and h.diagnostics[-1].get("encoder_messages") == str(n + 10)
+
+        assert h.spin(5.0, counted), h.diagnostics[-1:]
+        # most of the backlog came in one callback (some may have arrived while it ran: DDS delivers
+        # them on its own threads after SIGCONT)
+        assert int(h.diagnostics[-1].get("encoder_messages_drained", 0)) >= n // 4, h.diagnostics[-1]
+    finally:
+        h.close()
+    assert proc.stop() == 0

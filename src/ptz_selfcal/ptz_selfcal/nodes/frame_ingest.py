@@ -136,6 +136,17 @@ PARAMS = [
 _MAX_HEADER_BYTES = 65536  # serialized header, frame_id, encoding/format: more than any sane message has
 
 
+_MAX_DRAIN = 1000  # encoder messages taken at once (bounds one callback's time)
+
+
+def _take(subscription: Any) -> Any:
+    """The next message already received by a subscription, None if there is none (what rclpy's executor
+    does for one message per wake-up)."""
+    with subscription.handle:
+        taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+    return None if taken is None else taken[0]
+
+
 def _header_of(msg: Any) -> Header:
     """std_msgs/Header of a deserialized message or of a SerializedImage (read in place)."""
     if isinstance(msg, SerializedImage):
@@ -205,7 +216,9 @@ class FrameIngest(Node):
             self.create_subscription(
                 CompressedImage, topics.IMAGE_COMPRESSED, self._on_compressed, sensor, raw=True
             )
-        self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints, encoder_qos)
+        self._joint_sub = self.create_subscription(
+            JointState, topics.JOINT_STATES, self._on_joints, encoder_qos
+        )
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         # Retries only while frames wait (for encoders or a subscriber): an always-on 50 Hz timer costs
         # every frame's executor (each rclpy wake-up ~0.6 ms of CPU) and delays the frames behind it.
@@ -330,6 +343,20 @@ class FrameIngest(Node):
                 self._counts["input_frames_missing_estimate"] += round(interval / nominal) - 1
 
     def _on_joints(self, msg: JointState) -> None:
+        # The executor hands over one message per subscription and wake-up: with frames (latest-wins)
+        # arriving as often as encoder messages, a backlog of encoder messages built up while this process
+        # had no CPU never shrank, and every later frame waited (up to encoder_wait) for its encoders
+        # behind it. So every encoder message already received is taken now.
+        self._add_joints(msg)
+        for _ in range(_MAX_DRAIN):
+            more = _take(self._joint_sub)
+            if more is None:
+                break
+            self._counts["encoder_messages_drained"] += 1
+            self._add_joints(more)
+        self._flush_pending()
+
+    def _add_joints(self, msg: JointState) -> None:
         self._counts["encoder_messages"] += 1
         names = list(msg.name)
         positions = list(msg.position)
@@ -351,7 +378,6 @@ class FrameIngest(Node):
         )
         for joint, reason in rejected:
             self._note(f"encoder_rejected_{reason.value}", f"{joint} sample rejected ({reason.value})")
-        self._flush_pending()
 
     # ------------------------------------------------------------------ output
     def _flush_pending(self) -> None:
