@@ -281,16 +281,16 @@ def one_bag(name: str, bag: Path, distorted: bool, time_offset: float | None, wo
         f"{'yes' if errs3[0] <= 1.0 else 'NO'}), max over the first 10 frames "
         f"{max(errs3[:10]):.3f}%"
     )
-    after = ZoomModel.load(path)  # what run 2 saved: run 1's history plus its own calibration(s)
-    fig2 = model_figures(after, frames, truth, size, law)
-    if fig2["n"]:
-        f2 = fig2["f"]
-        lines.append(
-            f"   model saved by run 2 ({after.sample_count} samples, calibrations "
-            f"{sorted({c for c, _ in after._bins} | {after.calibration})}), on run 1's frames: focal error "
-            f"median {np.median(f2):.3f}%, max {f2.max():.3f}% (history kept: {after.sample_count} >= "
-            f"{model.sample_count} samples)"
-        )
+    for label, saved in (("run 2", path), ("run 3", only / "zoom_model.yaml")):
+        after = ZoomModel.load(saved)  # run 1's history plus what the restarted run learned
+        fig2 = model_figures(after, frames, truth, size, law)
+        if fig2["n"]:
+            f2 = fig2["f"]
+            lines.append(
+                f"   model saved by {label}: {after.sample_count} samples ({model.sample_count} from run 1), "
+                f"calibrations {sorted({c for c, _ in after._bins} | {after.calibration})}; on run 1's "
+                f"frames: focal error median {np.median(f2):.3f}%, max {f2.max():.3f}%"
+            )
     return lines
 
 

@@ -471,6 +471,7 @@ def test_each_calibration_has_its_own_scale_error_levelled_where_they_overlap():
 
 def test_old_calibrations_merge_with_their_offsets_bounded_memory():
     model = ZoomModel(max_calibrations=2)
+    assert model.new_calibration() == 0  # nothing learned yet: no new calibration
     for k, err in enumerate((0.003, -0.004, 0.002, -0.001)):
         model.set_live(live_samples(np.linspace(100.0 * k, 600.0 + 100.0 * k, 15), rel_error=err))
         model.new_calibration()

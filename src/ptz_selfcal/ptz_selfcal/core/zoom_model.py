@@ -319,6 +319,8 @@ class ZoomModel:
         samples are committed and later samples belong to a new calibration with its own scale error
         (section 6.2). Beyond `max_calibrations` the oldest is merged into the next, shifted by the
         difference of their estimated scale offsets. Returns the new calibration id."""
+        if not self._live and not any(c == self.calibration for c, _ in self._bins):
+            return self.calibration  # nothing learned from the running one: it stays the current id
         self.commit_live()
         self.calibration += 1
         self._fit = None
