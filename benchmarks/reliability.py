@@ -278,6 +278,7 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> No
         feeder = rh.Feeder(
             "bench_overload", sensor_qos=QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
         )
+        stages = StageTimes(feeder)
         try:
             feeder.wait_connected(compressed=True)
             r = rh.overload_scenario(feeder, {n: p.pid for n, p in nodes.items()}, seconds)
@@ -305,10 +306,60 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> No
                 + "; RSS at the end "
                 + ", ".join(f"{n} {s[-1][1]:.0f} MB" for n, s in r["rss"].items()),
                 f"   tracker per-frame time in /diagnostics: mean {tracker.get('track_ms_mean')} ms, p95 "
-                f"{tracker.get('track_ms_p95')} ms",
+                f"{tracker.get('track_ms_p95')} ms; calibrator solves {d['calibrator'].get('solves')}, "
+                "frame_ingest encoder messages taken from a backlog "
+                f"{ingest.get('encoder_messages_drained', 0)}, frames whose encoder wait expired "
+                f"{ingest.get('encoder_wait_expired', 0)}",
+                *stages.lines(feeder),
             ]
         finally:
             feeder.close()
+
+
+class StageTimes:
+    """Where the latency goes: the publish time (DDS source timestamp) of each frame's IngestedFrame,
+    HomographyStamped and CameraInfo, seen by the feeder (best effort, depth 1: no back-pressure)."""
+
+    def __init__(self, feeder: rh.Feeder) -> None:
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo
+
+        from ptz_selfcal import topics
+        from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame
+
+        self.wall_minus_mono = time.time() - time.monotonic()
+        self.published: dict[str, dict[int, float]] = {"ingest": {}, "tracker": {}, "calibrator": {}}
+        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        for key, msg_type, topic in (
+            ("ingest", IngestedFrame, topics.FRAME_IN),
+            ("tracker", HomographyStamped, topics.HOMOGRAPHY),
+            ("calibrator", CameraInfo, topics.CAMERA_INFO),
+        ):
+            feeder.node.create_subscription(msg_type, topic, self._callback(key), qos)
+
+    def _callback(self, key: str):
+        def on_message(msg, info) -> None:
+            mono = info["source_timestamp"] * 1e-9 - self.wall_minus_mono
+            self.published[key][rh.ns_of(msg.header.stamp)] = mono
+
+        return on_message
+
+    def lines(self, feeder: rh.Feeder) -> list[str]:
+        p = self.published
+        stamps = [ns for ns in sorted(feeder.sent) if all(ns in p[k] for k in p)]
+        third = max(1, len(stamps) // 3)
+        out = []
+        for name, part in (("first third", stamps[:third]), ("last third", stamps[-third:])):
+            ingest = [p["ingest"][ns] - feeder.sent[ns] for ns in part]
+            tracker = [p["tracker"][ns] - p["ingest"][ns] for ns in part]
+            calibrator = [p["calibrator"][ns] - p["tracker"][ns] for ns in part]
+            out.append(
+                f"   {name} p50/p95 ms per stage (publish times): sent -> frame_ingest {pct(ingest, 50)}/"
+                f"{pct(ingest, 95)}, -> homography_tracker {pct(tracker, 50)}/{pct(tracker, 95)}, -> "
+                f"calibrator {pct(calibrator, 50)}/{pct(calibrator, 95)} ({len(part)} frames seen at "
+                "every stage)"
+            )
+        return out
 
 
 def core_soak(lines: list[str], core_frames: int) -> None:
