@@ -18,6 +18,7 @@ Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) *
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -91,6 +92,7 @@ class TrackerConfig:
     relocalise_candidates: int = 3  # keyframes tried per lost frame (others on the next frames)
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
     repeat_threshold: float = 5.0  # re-warp and re-track when the prediction was off by more (full px)
+    verify_threshold: float = 16.0  # fits further than this from the prediction are checked by descriptors
     gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
     seed: int = 0
 
@@ -178,6 +180,7 @@ class HomographyTracker:
         self._lost_frames = 0
         self._lost = False
         self._frame_orb: tuple[int, Descriptors] | None = None
+        self._last_H_ref: Array | None = None  # reference -> previous frame (full res; None: no H)
 
     def keyframes(self) -> dict[int, Array]:
         """Stored keyframes of the current map: id -> H (reference -> keyframe, full resolution)."""
@@ -207,6 +210,7 @@ class HomographyTracker:
         else:
             result = self._track_frame(image, stamp)
         self._previous = image
+        self._last_H_ref = result.H_ref
         return result
 
     # ------------------------------------------------------------------ per-frame tracking
@@ -223,6 +227,9 @@ class HomographyTracker:
             fit2 = self._fit_tracks(current2, ok2)
             if fit2 is not None and fit2.inliers.sum() >= 0.8 * fit.inliers.sum():
                 current, ok, fit = current2, ok2, fit2
+        verify = fit is not None and c.klt_source == "warped" and c.verify_threshold > 0.0
+        if verify and _deviation(fit.H, H_pred, image.shape) > c.verify_threshold * self._scale:
+            current, ok, fit = self._verified(keyframe, image, current, ok, fit)
         match_count = int(ok.sum())
         if fit is None or fit.inliers.sum() < c.min_inlier_ratio * max(match_count, 1):
             return self._lose(image, stamp, match_count)
@@ -240,6 +247,30 @@ class HomographyTracker:
             H_ref=H_ref, H_keyframe=H_keyframe, keyframe_id=keyframe.id, reference_id=self._reference_id,
             inlier_count=inlier_count, match_count=match_count, rms_transfer_error=fit.rms / self._scale,
         )  # fmt: skip
+
+    def _verified(
+        self, keyframe: Keyframe, image: np.ndarray, current: Points, ok: NDArray[np.bool_], fit: RobustFit
+    ) -> tuple[Points, NDArray[np.bool_], RobustFit | None]:
+        """Check a fit the prediction did not foresee against descriptor matches (a global measurement).
+
+        Under a fast move (or the first frames after a relocalisation, whose velocity is unknown) KLT
+        starts far from the truth and, on repetitive texture (facades, tiles), locks many tracks onto the
+        same wrong period: a consistent fit with high inlier ratio and low rms that is hundreds of pixels
+        off (an image scale or shift of the wrong alias). When the descriptor homography contradicts the
+        fit, the tracks are re-measured from it; when that does not confirm it either, the frame is lost
+        (relocalisation then registers it). No descriptor homography: the fit stands (nothing against it).
+        """
+        H_desc = self._descriptor_homography(keyframe, image)
+        tolerance = self._link_tolerance()
+        if H_desc is None or _deviation(fit.H, H_desc, image.shape) <= tolerance:
+            return current, ok, fit
+        current2, ok2 = self._warped_klt(keyframe, image, H_desc)
+        fit2 = self._fit_tracks(current2, ok2)
+        if fit2 is not None and _deviation(fit2.H, H_desc, image.shape) <= 2.0 * tolerance:
+            _LOG.debug("frame %d: tracked fit contradicted by descriptors, re-tracked", self._frame_index)
+            return current2, ok2, fit2
+        _LOG.debug("frame %d: tracked fit contradicted by descriptors: lost", self._frame_index)
+        return current, ok, None
 
     def _fit_tracks(self, current: Points, ok: NDArray[np.bool_]) -> RobustFit | None:
         """Keyframe -> frame homography (working pixels) from the tracks that survived KLT."""
@@ -351,7 +382,7 @@ class HomographyTracker:
         for kf, H_chain in self._older_candidates(image, H_ref_guess, parent.id):
             # Descriptor re-matching only while no link as close to the reference exists (bounded cost).
             shortest = min(link_kf.depth for link_kf, _, _ in links)
-            linked = self._link(kf, image, corners, H_chain, rematch=kf.depth < shortest)
+            linked = self._link(kf, image, corners, H_chain, kf.depth < shortest, parent.depth + 1 + kf.depth)
             if linked is not None:
                 links.append(linked)
         return self._commit_keyframe(image, stamp, corners, links, TrackingState.NEW_KEYFRAME, match_count)
@@ -375,23 +406,38 @@ class HomographyTracker:
         return [(kf, H_work) for *_, kf, H_work in scored[: c.link_candidates]]
 
     def _link(
-        self, kf: Keyframe, image: np.ndarray, corners: Points, H_chain: Array, rematch: bool = True
+        self,
+        kf: Keyframe,
+        image: np.ndarray,
+        corners: Points,
+        H_chain: Array,
+        rematch: bool = True,
+        hops: int = 1,
     ) -> tuple[Keyframe, RobustFit, KeyframeLink] | None:
         """Re-measure keyframe -> frame independently of the chain: photometrically from the chain's
-        prediction, else (rematch) from descriptor matches; reject a link that contradicts the chain."""
+        prediction, else (rematch) from descriptor matches; reject a link that contradicts the chain.
+
+        The chain between the keyframe and the frame is up to `hops` links long and drifts (each link is
+        measured on the overlap only, mostly small at high zoom, and extrapolated to the whole image):
+        a link further than link_max_deviation from it is kept up to link_max_deviation sqrt(hops) when
+        the descriptor homography, a global measurement independent of both, confirms it (loop closure
+        after a long excursion; a wrong alias on repetitive texture is not confirmed)."""
         c = self.config
+        tolerance = self._link_tolerance()
+        loose = tolerance * math.sqrt(max(hops, 1))
         starts = [] if c.link_with_descriptors else [H_chain]
         H_desc = self._descriptor_homography(kf, image) if c.link_with_descriptors else None
         starts += [H_desc] if H_desc is not None else []
         for attempt in range(2):
             for H0 in starts:
-                if _deviation(H0, H_chain, image.shape) > self._link_tolerance():
+                if _deviation(H0, H_chain, image.shape) > loose:
                     continue
                 refined = self._photometric_link(kf, image, corners, H0)
                 if refined is None:
                     continue
                 fit, src, dst = refined
-                if _deviation(fit.H, H_chain, image.shape) > self._link_tolerance():
+                off = _deviation(fit.H, H_chain, image.shape)
+                if off > tolerance and not (off <= loose and self._confirmed(kf, image, fit.H)):
                     _LOG.debug("link %d -> frame %d contradicts the chain: dropped", kf.id, self._frame_index)
                     continue
                 return kf, fit, self._make_link(kf, fit, src, dst)
@@ -399,6 +445,11 @@ class HomographyTracker:
                 H_desc = self._descriptor_homography(kf, image)  # photometric start failed: re-match
                 starts = [H_desc] if H_desc is not None else []
         return None
+
+    def _confirmed(self, kf: Keyframe, image: np.ndarray, H: Array) -> bool:
+        """Whether the descriptor homography keyframe -> frame agrees with H (working pixels)."""
+        H_desc = self._descriptor_homography(kf, image)
+        return H_desc is not None and _deviation(H, H_desc, image.shape) <= self._link_tolerance()
 
     def _descriptor_homography(self, kf: Keyframe, image: np.ndarray) -> Array | None:
         """Keyframe -> frame homography (working pixels) from ORB matches, or None."""
@@ -507,8 +558,16 @@ class HomographyTracker:
         keyframe = Keyframe(self._frame_index, stamp, image, H_ref, depth, corners, descriptors)
         self._keyframes[keyframe.id] = keyframe
         self._keyframe_id = keyframe.id
-        # Keep the frame-to-frame motion for the constant-velocity prediction (identity after a loss).
-        velocity = np.eye(3) if self._lost else self._tracks.H_last @ np.linalg.inv(self._tracks.H_previous)
+        # Keep the frame-to-frame motion for the constant-velocity prediction: the tracked one, or after a
+        # relocalisation the motion from the previous frame when that one had a homography (a fast move
+        # lost only for the frame relocalised goes on fast), else identity.
+        if not self._lost:
+            velocity = self._tracks.H_last @ np.linalg.inv(self._tracks.H_previous)
+        elif self._last_H_ref is not None:
+            S = work_from_full(self._scale)
+            velocity = S @ H_ref @ np.linalg.inv(self._last_H_ref) @ np.linalg.inv(S)
+        else:
+            velocity = np.eye(3)
         self._tracks = _Tracks(current=corners.copy(), in_keyframe=corners.copy(), initial_count=len(corners),
                                H_previous=np.linalg.inv(velocity))  # fmt: skip
         self._prune()
@@ -540,7 +599,9 @@ class HomographyTracker:
                 # Also link older overlapping keyframes (fewer hops to the reference, loop closure).
                 H_ref_guess = links[0][2].H @ kf.H_ref
                 for other, H_chain in self._older_candidates(image, H_ref_guess, kf.id):
-                    linked = self._link(other, image, corners, H_chain, rematch=other.depth < kf.depth)
+                    linked = self._link(
+                        other, image, corners, H_chain, other.depth < kf.depth, kf.depth + 1 + other.depth
+                    )
                     if linked is not None:
                         links.append(linked)
                 return self._commit_keyframe(
