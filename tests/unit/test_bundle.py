@@ -339,3 +339,169 @@ def test_keyframe_solver_refines_lm_with_bundle_adjustment() -> None:
     # rms per point sigma sqrt(2) sqrt(dof / 2N), and dof / 2N ~ 1/2 for two-view rays: ~ sigma.
     assert 0.45 < result.residual < 0.55
     assert np.sqrt(np.mean(((result.focal - noisy.K[frames, 1, 1]) / noisy.K[frames, 1, 1]) ** 2)) < 0.01
+
+
+# ---------------------------------------------------------------------------------------------------
+# Radial distortion estimated in the adjustment (distortion=True): division model about the pp
+# ---------------------------------------------------------------------------------------------------
+
+
+def _distorted_keyframe_pairs(corner_shift: float, pp_offset=(15.0, -10.0), noise=0.0, n=16, seed=0):
+    """Keyframe-pair matches of a 1280x720 PTZ camera zooming 1x -> 3x (core/render.CameraProfile, lam
+    shrinking as 1/f) on DISTORTED pixels, each ray seen in two keyframes (i, i+1) or (i, i+2)."""
+    from ptz_selfcal.core.distortion import division_distort, division_undistort
+    from ptz_selfcal.core.render import CameraProfile
+
+    width, height = 1280, 720
+    f_wide = 0.5 * width / np.tan(np.radians(30.0))
+    profile = CameraProfile(width, height, 10.0, f_wide, corner_shift=corner_shift, pp_offset=pp_offset)
+    state = profile.state(np.linspace(0.0, 5.0, n))
+    K = np.array([state.K(i) for i in range(n)])
+    R = np.array([state.R(i) for i in range(n)])
+    rng = np.random.default_rng(seed)
+    pairs = []
+    for i in range(n):
+        for j in (i + 1, i + 2):
+            if j >= n:
+                continue
+            xd = rng.uniform((0, 0), (width - 1, height - 1), (300, 2))
+            xu = division_undistort(xd, state.lam[i], state.pp[i], state.f[i])
+            X = (np.linalg.inv(K[i]) @ np.column_stack([xu, np.ones(len(xu))]).T).T @ R[i]
+            y = X @ (K[j] @ R[j]).T
+            xj = division_distort(y[:, :2] / y[:, 2:], state.lam[j], state.pp[j], state.f[j])
+            ok = (
+                np.isfinite(xj).all(axis=1)
+                & (xj >= 0).all(axis=1)
+                & (xj <= (width - 1, height - 1)).all(axis=1)
+            )
+            ok &= y[:, 2] > 0
+            k = np.flatnonzero(ok)[:60]
+            pairs.append(
+                (
+                    i,
+                    j,
+                    xd[k] + noise * rng.standard_normal((len(k), 2)),
+                    xj[k] + noise * rng.standard_normal((len(k), 2)),
+                )
+            )
+    R_rel = np.einsum("nij,kj->nik", R, R[0])
+    return pair_observations(pairs), K, R_rel, state, (width, height)
+
+
+def _centred_start(K, image_size, focal_scale=1.02):
+    K0 = K.copy()
+    K0[:, 0, 0] *= focal_scale
+    K0[:, 1, 1] *= focal_scale
+    K0[:, :2, 2] = [(image_size[0] - 1) / 2.0, (image_size[1] - 1) / 2.0]
+    return K0
+
+
+@pytest.mark.parametrize("mode", ["frame", "curve"])
+def test_distortion_jacobians_match_finite_differences(mode) -> None:
+    obs_in, K, R, state, size = _distorted_keyframe_pairs(0.12)
+    n = len(K)
+    obs, _ = bundle._prepare(obs_in, n)
+    n_rays = int(obs.ray_idx.max()) + 1
+    model = IntrinsicsModel(
+        aspect=ParamMode.CONSTANT, skew=ParamMode.VARYING, principal_point=ParamMode.VARYING
+    )
+    values = bundle.values_from_matrices(_centred_start(K, size))
+    values[:, 1], values[:, 2] = 1.01, 2e-3 * np.arange(n)
+    lam = state.lam * 1.1
+    X = bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays)
+    curve = None
+    if mode == "curve":  # a curve with all three coefficients non-zero, f_ref away from every f
+        curve = bundle._Curve.fit(values[:, 0], lam, 0.9 * values[:, 0].min(), 734.0, 2)
+        curve = bundle.replace(curve, coefficients=curve.coefficients + np.array([0.01, -0.02, 0.03]))
+        lam = curve.lam(values[:, 0])
+    st = bundle._State(values, R, X, lam, curve)
+    layout = bundle._layout(model, n, use_prior=False, distortion=True, curve_size=0 if curve is None else 3)
+    _, Y = bundle._residuals(st, obs)
+    J_cam, J_ray = bundle._jacobians(st, obs, Y, layout)
+    eps = 1e-6
+
+    def central_difference(d_cam, d_ray):
+        r_p, _ = bundle._residuals(bundle._apply_step(st, d_cam, d_ray, layout, 1.0), obs)
+        r_m, _ = bundle._residuals(bundle._apply_step(st, -d_cam, -d_ray, layout, 1.0), obs)
+        return (r_p - r_m) / (2 * eps)
+
+    for p in range(layout.n_params):  # rotations, f, aspect, skew, pp and every lam (or the curve)
+        d = np.zeros(layout.n_params)
+        d[p] = eps
+        numeric = central_difference(d, np.zeros((n_rays, 2)))
+        hit = (layout.local[obs.frame_idx] == p).T.astype(float)
+        analytic = np.einsum("aln,ln->an", J_cam, hit)
+        np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
+    for ray in (0, n_rays // 2):
+        for c in range(2):
+            d_ray = np.zeros((n_rays, 2))
+            d_ray[ray, c] = eps
+            numeric = central_difference(np.zeros(layout.n_params), d_ray)
+            analytic = J_ray[:, c] * (obs.ray_idx == ray)
+            np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
+
+
+@pytest.mark.parametrize("mode", ["frame", "curve"])
+@pytest.mark.parametrize("pp_offset", [(15.0, -10.0), (-24.0, 16.0)])
+def test_distortion_and_off_centre_principal_point_recovered_from_raw_pairs(pp_offset, mode) -> None:
+    """Exact distorted keyframe pairs (12% corner shift at the wide end, pp 18-29 px off centre): started
+    at the image centre, lam = 0 and f 2% off, the joint adjustment (MAP, constant pp) recovers the
+    principal point (= distortion centre), every focal length and every lam; without distortion the
+    same data give a wrong calibration."""
+    obs, K, R, state, size = _distorted_keyframe_pairs(0.12, pp_offset=pp_offset)
+    K0 = _centred_start(K, size)
+    result = bundle_adjust(obs, K0, R, size, SQUARE_CONSTANT_PP, distortion=mode, analyse=False)
+    assert result.ok and result.residual < 1e-6
+    np.testing.assert_allclose(result.K[:, :2, 2], state.pp, atol=1e-4)
+    np.testing.assert_allclose(result.focal, state.f, rtol=1e-7)
+    np.testing.assert_allclose(result.info["lam"], state.lam, rtol=1e-6)
+    # MAP (eq. 27, the calibrator's prior at the image centre, sigma 20 px, noise 1 px): the prior pulls
+    # the principal point back by a few percent of its offset
+    prior = default_pp_prior(size, 20.0)
+    result = bundle_adjust(
+        obs, K0, R, size, SQUARE_CONSTANT_PP, pp_prior=prior, distortion=mode, analyse=False
+    )
+    assert result.ok and result.residual < 0.01
+    assert np.all(np.linalg.norm(result.K[:, :2, 2] - state.pp, axis=1) < 0.05 * np.hypot(*pp_offset))
+    np.testing.assert_allclose(result.focal, state.f, rtol=1e-3)
+    np.testing.assert_allclose(result.info["lam"], state.lam, rtol=1e-2)
+    plain = bundle_adjust(obs, K0, R, size, SQUARE_CONSTANT_PP, pp_prior=prior, analyse=False)
+    assert np.max(np.abs(plain.focal / state.f - 1.0)) > 0.05
+
+
+def test_distortion_with_noise_within_its_own_uncertainty() -> None:
+    obs, K, R, state, size = _distorted_keyframe_pairs(0.12, noise=0.3, seed=3)
+    result = bundle_adjust(
+        obs,
+        _centred_start(K, size),
+        R,
+        size,
+        SQUARE_CONSTANT_PP,
+        pp_prior=default_pp_prior(size, 20.0),
+        distortion=True,
+        analyse=False,
+    )
+    assert result.ok
+    z_pp = (result.K[0, :2, 2] - state.pp[0]) / result.sigma_pp[0]
+    z_lam = (result.info["lam"] - state.lam) / result.info["sigma_lam"]
+    assert np.all(np.abs(z_pp) < 4.0) and np.all(result.sigma_pp[0] < 2.0)
+    assert np.all(np.abs(z_lam) < 4.0)
+    assert np.all(np.abs(result.focal - state.f) < 4.0 * result.sigma_f)
+    assert np.max(np.abs(result.focal / state.f - 1.0)) < 0.005
+
+
+@pytest.mark.parametrize("mode", ["frame", "curve"])
+def test_undistorted_lens_gives_lam_zero(mode) -> None:
+    """A lens without distortion: lam ~ 0 from a barrel start (lam = -0.1), pp and f recovered."""
+    obs, K, R, state, size = _distorted_keyframe_pairs(0.0)
+    start = dict(distortion=mode, lam_init=np.full(len(K), -0.1), analyse=False)
+    mle = bundle_adjust(obs, _centred_start(K, size), R, size, SQUARE_CONSTANT_PP, **start)
+    assert mle.ok and mle.residual < 1e-6
+    np.testing.assert_allclose(mle.info["lam"], 0.0, atol=1e-8)
+    np.testing.assert_allclose(mle.K[:, :2, 2], state.pp, atol=1e-4)
+    np.testing.assert_allclose(mle.focal, state.f, rtol=1e-7)
+    # MAP: the prior's pull on the principal point leaves a trace of lam, far below a pixel at the corner
+    prior = default_pp_prior(size, 20.0)
+    result = bundle_adjust(obs, _centred_start(K, size), R, size, SQUARE_CONSTANT_PP, pp_prior=prior, **start)
+    corner = np.abs(result.info["lam"]) * (734.0 / state.f) ** 2 * 734.0  # displacement at the corner, px
+    assert result.ok and np.all(corner < 0.1), corner

@@ -225,7 +225,9 @@ class _StubSession:
 @pytest.mark.parametrize("hold", [True, False])
 def test_session_hook_corrects_keyframes_frames_and_matches(hold: bool) -> None:
     # the calibration's principal point as the distortion centre (here exact)
-    hook = SessionLensHook(lambda width: F_WIDE, centre_from_calibration=True, hold_keyframes=hold)
+    hook = SessionLensHook(
+        lambda width: F_WIDE, centre_from_calibration=True, hold_keyframes=hold, joint_bundle=False
+    )
     session = _StubSession()
     _, state = hook.frame(np.eye(3), "NEW_KEYFRAME", 0, "ref", W, H_IMG)
     assert state == "NEW_KEYFRAME"  # the reference keyframe passes
@@ -258,3 +260,49 @@ def test_session_hook_corrects_keyframes_frames_and_matches(hold: bool) -> None:
     assert not np.allclose(a, matches(i, j, lam_issue)[0])
     D = hook.distortion(intrinsic_matrix(F_WIDE, *PP))
     assert D[0] < -0.1
+
+
+class _StubSolver:
+    """What SessionLensHook uses of calibration_state.KeyframeBundleSolver in joint mode."""
+
+    def __init__(self) -> None:
+        self.lens = None
+        self.lens_estimate = None
+
+
+def test_joint_hook_sends_raw_matches_and_takes_the_adjusted_centre_once_it_is_certain() -> None:
+    from ptz_selfcal.core.calibration_state import LensEstimate
+
+    hook = SessionLensHook(lambda width: F_WIDE, centre_gate_px=2.0)
+    session = _StubSession()
+    session.solver = _StubSolver()
+    hook.frame(np.eye(3), "NEW_KEYFRAME", 0, "ref", W, H_IMG)
+    H_raw = np.eye(3)
+    for k in range(1, 4):
+        H_raw = tracked_H(k, k - 1, lam_issue) @ H_raw
+        session.calibrator.keyframes.append(_StubKeyframe(k))
+        hook.frame(H_raw, "NEW_KEYFRAME", k, "ref", W, H_IMG)
+        hook.matches(k, k - 1, *matches(k, k - 1, lam_issue))
+        hook.work(session)
+    assert session.solver.lens is hook  # the adjustment gets the lens model (lam_guess, distort)
+    i, j, a, _, _ = session.matches[-1]
+    np.testing.assert_array_equal(a, matches(i, j, lam_issue)[0])  # raw points: the adjustment fits lam
+    assert hook.centre is None and np.allclose(hook.lens.centre0, [(W - 1) / 2, (H_IMG - 1) / 2])
+    # lam_guess and distort are the lens model: distort inverts the correction of the keyframe's points
+    lam = hook.lam_guess(2, F_WIDE)
+    assert lam < 0.0 and abs(lam / lam_issue(F_WIDE) - 1.0) < 0.2
+    pts = matches(2, 1, lam_issue)[0]
+    np.testing.assert_allclose(hook.distort(2, hook.lens.undistort_points(2, pts)), pts, atol=1e-6)
+    # an uncertain estimate is not taken, a certain one is (and the coefficients are re-estimated)
+    centre = np.array(PP)
+    session.solver.lens_estimate = LensEstimate(centre + 5.0, np.array([3.0, 3.0]), {}, {})
+    hook.matches(3, 2, *matches(3, 2, lam_issue))
+    hook.work(session)
+    assert hook.centre is None
+    session.solver.lens_estimate = LensEstimate(centre, np.array([0.5, 0.5]), {}, {})
+    updates = hook.lens.stats.updates
+    assert hook.work(session)  # the centre moved: re-estimated without new matches
+    assert hook.lens.stats.updates == updates + 1
+    np.testing.assert_allclose(hook.centre, centre)
+    np.testing.assert_allclose(hook.lens.centre0, centre)
+    assert not hook.work(session)  # the same estimate again: nothing to do

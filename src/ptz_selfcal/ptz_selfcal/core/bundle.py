@@ -9,6 +9,20 @@ The solver is a sparse Levenberg-Marquardt: the 2x2 block of every ray is elimin
 complement (all rays at once with numpy), leaving a small dense reduced camera system of the
 rotations and intrinsics. Jacobians are analytic. The inverse of the reduced normal equations, scaled
 by the residual variance, gives the 1-sigma uncertainty of every focal length and principal point.
+
+Radial distortion (section 7, beyond the paper): with `distortion=True` every frame also has a
+division-model coefficient lam_i about its principal point, on normalised coordinates n = K^-1 x
+(core/distortion.py's convention): the observation is the DISTORTED pixel
+x_ij = K_i (s n),  n = proj(R_i X_j),  s = 2 / (1 + sqrt(1 - 4 lam_i |n|^2)),
+so the principal point is also the distortion centre. In rotation-only data the two cannot be told
+apart when they are estimated separately (a corrected homography's principal point follows the
+assumed centre); tied together and fitted to the raw points, the distortion pattern itself pins the
+centre (tests/unit/test_bundle.py, benchmarks/distortion.py). lam_i is either free per frame
+(distortion="frame") or on a curve of the focal length (distortion="curve", section 7.2's second
+option, eq. 35 with core/distortion_estimation.DistortionVsFocal's better-behaved form): the corner
+shift s = c0 + c1 u + c2 u^2, u = f_ref / f_i, lam_i = -s / ((1 + s) (D / f_i)^2), D the half-diagonal.
+Per-frame coefficients at long focal lengths trade off against the focal length (both act at second
+order over a narrow field of view); the curve keeps three unknowns for the whole zoom range.
 """
 
 from __future__ import annotations
@@ -24,6 +38,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.core.degeneracy import analyse_motion
+from ptz_selfcal.core.distortion import half_diagonal
 from ptz_selfcal.core.intrinsics import (
     ASPECT,
     CX,
@@ -153,16 +168,29 @@ class _Layout:
     n_params: int  # P
     prior_index: IntArray  # global indices of principal point unknowns under the prior
     prior_axis: IntArray  # 0 (cx) or 1 (cy) for each prior_index
+    lam_index: IntArray | None = None  # (n,) global index of each frame's distortion coefficient
+    curve_index: IntArray | None = None  # (degree + 1,) global indices of the lam(f) curve coefficients
 
 
-def _layout(model: IntrinsicsModel, n_frames: int, use_prior: bool) -> _Layout:
+def _layout(
+    model: IntrinsicsModel, n_frames: int, use_prior: bool, distortion: bool = False, curve_size: int = 0
+) -> _Layout:
     intr_index = parameter_index(model, n_frames)
     n_intr = parameter_count(model, n_frames)
     free = np.array([c for c, mode in enumerate(model.modes) if mode is not ParamMode.KNOWN], dtype=np.intp)
-    P = n_intr + 3 * (n_frames - 1)
+    n_lam = curve_size if curve_size else (n_frames if distortion else 0)
+    P = n_intr + 3 * (n_frames - 1) + n_lam
     rot = np.full((n_frames, 3), P, dtype=np.intp)
     rot[1:] = n_intr + np.arange(3 * (n_frames - 1)).reshape(-1, 3)
     local = np.concatenate([rot, intr_index[:, free]], axis=1)
+    lam_index = curve_index = None
+    first = n_intr + 3 * (n_frames - 1)
+    if curve_size:  # the curve's coefficients, shared by every frame: the last local columns
+        curve_index = (first + np.arange(curve_size)).astype(np.intp)
+        local = np.concatenate([local, np.repeat(curve_index[None], n_frames, axis=0)], axis=1)
+    elif distortion:  # one coefficient per frame, the last local column
+        lam_index = (first + np.arange(n_frames)).astype(np.intp)
+        local = np.concatenate([local, lam_index[:, None]], axis=1)
     prior_index = np.zeros(0, dtype=np.intp)
     prior_axis = np.zeros(0, dtype=np.intp)
     if use_prior and model.principal_point is not ParamMode.KNOWN:
@@ -170,7 +198,7 @@ def _layout(model: IntrinsicsModel, n_frames: int, use_prior: bool) -> _Layout:
         cy_ids = np.unique(intr_index[:, CY])
         prior_index = np.concatenate([cx_ids, cy_ids])
         prior_axis = np.concatenate([np.zeros(len(cx_ids), np.intp), np.ones(len(cy_ids), np.intp)])
-    return _Layout(intr_index, free, local, P, prior_index, prior_axis)
+    return _Layout(intr_index, free, local, P, prior_index, prior_axis, lam_index, curve_index)
 
 
 @dataclass
@@ -178,6 +206,43 @@ class _State:
     values: Array  # (n, 5) intrinsics table (f, aspect, skew, cx, cy)
     R: Array  # (n, 3, 3) world (= frame 0) to camera rotations
     X: Array  # (m, 3) unit rays
+    lam: Array | None = None  # (n,) division coefficients (None: no distortion)
+    curve: _Curve | None = None  # lam(f) when the coefficients follow a curve (lam = curve.lam(f))
+
+
+@dataclass(frozen=True)
+class _Curve:
+    """lam(f) through the corner shift s(u) = sum_k c_k u^k, u = f_ref / f (module docstring)."""
+
+    coefficients: Array
+    f_ref: float
+    half_diagonal: float
+
+    def lam(self, f: Array) -> Array:
+        return self.derivatives(f)[0]
+
+    def derivatives(self, f: Array) -> tuple[Array, Array, Array]:
+        """lam (n,), d lam / d c (n, k) and d lam / d f (n,) at focal lengths f."""
+        u = self.f_ref / f
+        powers = u[:, None] ** np.arange(len(self.coefficients))[None]
+        s = powers @ self.coefficients
+        rho2 = (self.half_diagonal / f) ** 2
+        lam = -s / ((1.0 + s) * rho2)
+        dlam_ds = -1.0 / ((1.0 + s) ** 2 * rho2)
+        ds_du = (powers[:, :-1] * np.arange(1, len(self.coefficients))[None]) @ self.coefficients[1:]
+        # lam = -s f^2 / ((1 + s) D^2): 2 lam / f at constant s, plus s's own change through u = f_ref / f
+        dlam_df = 2.0 * lam / f + dlam_ds * ds_du * (-u / f)
+        return lam, dlam_ds[:, None] * powers, dlam_df
+
+    @classmethod
+    def fit(cls, f: Array, lam: Array, f_ref: float, half_diagonal: float, degree: int) -> _Curve:
+        """Least-squares coefficients through per-frame (f, lam) (the starting point)."""
+        u = f_ref / f
+        rho2 = (half_diagonal / f) ** 2
+        s = 1.0 / (1.0 + lam * rho2) - 1.0
+        A = u[:, None] ** np.arange(degree + 1)[None]
+        coefficients = np.linalg.lstsq(A, s, rcond=None)[0]
+        return cls(coefficients, float(f_ref), float(half_diagonal))
 
 
 # Per-observation arrays are component-major, (components, N) with the N observations sorted by frame,
@@ -192,11 +257,25 @@ def _per_frame(R: Array, vectors: Array, bounds: IntArray) -> Array:
     return out
 
 
+def _distortion_scale(a: Array, b: Array, lam: Array) -> tuple[Array, Array, Array]:
+    """Division model on normalised coordinates: n_d = s n with s = 2 / (1 + sqrt(1 - 4 lam q)),
+    q = |n|^2 (distortion.division_distort_radius); returns s, ds/dq and ds/dlam (NaN off the model)."""
+    q = a * a + b * b
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.sqrt(1.0 - 4.0 * lam * q)
+        s = 2.0 / (1.0 + t)
+        k = s * s / t  # ds/dt = -s^2 / 2, dt/dq = -2 lam / t, dt/dlam = -2 q / t
+    return s, k * lam, k * q
+
+
 def _residuals(state: _State, obs: _PreparedObservations) -> tuple[Array, Array]:
     """Reprojection residuals (2, N) of eq. 26 and the camera-frame rays Y = R_i X_j (3, N)."""
     Y = _per_frame(state.R, state.X.T[:, obs.ray_idx], obs.bounds)
     f, gamma, s, cx, cy = state.values.T[:, obs.frame_idx]
     a, b = Y[0] / Y[2], Y[1] / Y[2]
+    if state.lam is not None:  # distorted projection about the principal point
+        scale = _distortion_scale(a, b, state.lam[obs.frame_idx])[0]
+        a, b = a * scale, b * scale
     r = np.empty((2, len(a)))
     r[0] = gamma * f * a + s * f * b + cx - obs.xy_t[0]
     r[1] = f * b + cy - obs.xy_t[1]
@@ -209,27 +288,47 @@ def _jacobians(state: _State, obs: _PreparedObservations, Y: Array, layout: _Lay
     Y0, Y1, Y2 = Y
     inv_z = 1.0 / Y2
     a, b = Y0 * inv_z, Y1 * inv_z
-    # d(u, v)/dY of the pinhole projection with K of eq. 1 (row 1 has no Y0 term).
-    A00, A01 = gamma * f * inv_z, s * f * inv_z
-    A02 = -(A00 * a + A01 * b)
-    A11 = f * inv_z
-    A12 = -A11 * b
     J_cam = np.zeros((2, layout.local.shape[1], len(a)))
+    if state.lam is None:
+        # d(u, v)/dY of the pinhole projection with K of eq. 1 (row 1 has no Y0 term).
+        A00, A01 = gamma * f * inv_z, s * f * inv_z
+        A10, A11 = 0.0 * A00, f * inv_z
+        ad, bd = a, b
+    else:
+        # distorted normalised point n_d = scale n: d(n_d)/dn = scale I + 2 ds/dq n n^T
+        scale, ds_dq, ds_dlam = _distortion_scale(a, b, state.lam[obs.frame_idx])
+        ad, bd = a * scale, b * scale
+        D00, D01, D11 = scale + 2.0 * ds_dq * a * a, 2.0 * ds_dq * a * b, scale + 2.0 * ds_dq * b * b
+        # d(u, v)/dn = [[gamma f, s f], [0, f]] D, then dn/dY = [[1, 0, -a], [0, 1, -b]] / Y2
+        A00, A01 = f * inv_z * (gamma * D00 + s * D01), f * inv_z * (gamma * D01 + s * D11)
+        A10, A11 = f * inv_z * D01, f * inv_z * D11
+        du_dlam = np.stack([f * (gamma * a + s * b) * ds_dlam, f * b * ds_dlam])  # (2, N)
+        if state.curve is None:
+            J_cam[:, -1] = du_dlam
+        else:
+            _, dlam_dc, dlam_df = state.curve.derivatives(state.values[:, F])
+            k = len(state.curve.coefficients)
+            J_cam[:, -k:] = du_dlam[:, None, :] * dlam_dc[obs.frame_idx].T[None]
+            df_extra = du_dlam * dlam_df[obs.frame_idx]  # f moves lam along the curve
+    A02 = -(A00 * a + A01 * b)
+    A12 = -(A10 * a + A11 * b)
     # Left update R <- exp([w]_x) R: dY/dw = -[Y]_x, so each row of dr/dw is Y x (row of A).
     J_cam[0, 0] = Y1 * A02 - Y2 * A01
     J_cam[0, 1] = Y2 * A00 - Y0 * A02
     J_cam[0, 2] = Y0 * A01 - Y1 * A00
     J_cam[1, 0] = Y1 * A12 - Y2 * A11
-    J_cam[1, 1] = -Y0 * A12
-    J_cam[1, 2] = Y0 * A11
+    J_cam[1, 1] = Y2 * A10 - Y0 * A12
+    J_cam[1, 2] = Y0 * A11 - Y1 * A10
     for k, column in enumerate(layout.free_columns, start=3):
         if column == F:
-            J_cam[0, k] = gamma * a + s * b
-            J_cam[1, k] = b
+            J_cam[0, k] = gamma * ad + s * bd
+            J_cam[1, k] = bd
+            if state.curve is not None:
+                J_cam[:, k] += df_extra
         elif column == ASPECT:
-            J_cam[0, k] = f * a
+            J_cam[0, k] = f * ad
         elif column == SKEW:
-            J_cam[0, k] = f * b
+            J_cam[0, k] = f * bd
         elif column == CX:
             J_cam[0, k] = 1.0
         else:
@@ -238,7 +337,7 @@ def _jacobians(state: _State, obs: _PreparedObservations, Y: Array, layout: _Lay
     G = _per_frame(state.R, _tangent_bases(state.X).transpose(1, 2, 0)[:, :, obs.ray_idx], obs.bounds)
     J_ray = np.empty((2, 2, len(a)))
     J_ray[0] = A00 * G[0] + A01 * G[1] + A02 * G[2]
-    J_ray[1] = A11 * G[1] + A12 * G[2]
+    J_ray[1] = A10 * G[0] + A11 * G[1] + A12 * G[2]
     return J_cam, J_ray
 
 
@@ -521,7 +620,13 @@ def _apply_step(state: _State, d_cam: Array, d_ray: Array, layout: _Layout, f_mi
     B = _tangent_bases(state.X)
     X = state.X + B[:, :, 0] * d_ray[:, :1] + B[:, :, 1] * d_ray[:, 1:]
     X /= np.linalg.norm(X, axis=1, keepdims=True)
-    return _State(values, R, X)
+    lam, curve = state.lam, state.curve
+    if curve is not None and layout.curve_index is not None:
+        curve = replace(curve, coefficients=curve.coefficients + d[layout.curve_index])
+        lam = curve.lam(values[:, F])
+    elif lam is not None and layout.lam_index is not None:
+        lam = lam + d[layout.lam_index]
+    return _State(values, R, X, lam, curve)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -581,6 +686,9 @@ def bundle_adjust(
     tolerance: float = 1e-10,
     analyse: bool = True,
     schur: str = "auto",
+    distortion: bool | str = False,
+    lam_init: ArrayLike | None = None,
+    curve_degree: int = 2,
 ) -> SelfCalibrationResult:
     """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
 
@@ -595,7 +703,14 @@ def bundle_adjust(
     carries a MotionReport (section 6) and ok is False when the motion is not well posed.
     schur: how the rays are eliminated, 'dense' (rays seen in many frames), 'sparse' (rays seen in
     few frames, e.g. keyframe pairs) or 'auto' (by a cost estimate); the result is the same.
+    distortion: the observations are DISTORTED pixels; a division coefficient per frame about its
+    principal point is estimated with everything else (module docstring): True or "frame", free per
+    frame; "curve", on the lam(f) curve of degree curve_degree. Starting from lam_init ((n,), default
+    0); the result's info carries "lam" (n,), "sigma_lam" (n,) and, for a curve,
+    "distortion_curve" (coefficients, f_ref, half-diagonal).
     """
+    if distortion not in (False, True, "frame", "curve"):
+        raise ValueError(f"distortion must be False, True, 'frame' or 'curve', not {distortion!r}")
     K0 = np.asarray(K_init, dtype=float).reshape(-1, 3, 3)
     R_in = np.asarray(R_init, dtype=float).reshape(-1, 3, 3)
     n = len(K0)
@@ -618,19 +733,31 @@ def bundle_adjust(
         else:  # constant unknowns start at their mean over frames
             for p in np.unique(index[:, c]):
                 values[index[:, c] == p, c] = values[index[:, c] == p, c].mean()
+    lam = None
+    if distortion:
+        lam = np.zeros(n) if lam_init is None else np.asarray(lam_init, dtype=float).reshape(n).copy()
+        if not np.all(np.isfinite(lam)):
+            raise ValueError("lam_init must be finite")
     if rays_init is None:
-        X = initial_rays(obs, matrices_from_values(values), R, n_rays)
+        Kmat = matrices_from_values(values)
+        X = initial_rays(obs if lam is None else _undistorted(obs, Kmat, lam), Kmat, R, n_rays)
     else:
         X = np.asarray(rays_init, dtype=float)[ray_ids] @ R_in[0].T
         X /= np.linalg.norm(X, axis=1, keepdims=True)
-    state = _State(values, R, X)
+    curve = None
+    if distortion == "curve":
+        assert lam is not None
+        f0 = values[:, F]
+        curve = _Curve.fit(f0, lam, float(f0.min()), half_diagonal(*image_size), int(curve_degree))
+        lam = curve.lam(f0)
+    state = _State(values, R, X, lam, curve)
 
     prior = None
     if pp_prior is not None:
         mean = np.asarray(pp_prior[0], dtype=float).reshape(2)
         sigma = np.asarray(pp_prior[1], dtype=float).reshape(2)
         prior = (mean, sigma, float(noise_sigma))
-    layout = _layout(model, n, prior is not None)
+    layout = _layout(model, n, prior is not None, bool(distortion), 0 if curve is None else curve_degree + 1)
     result = _levenberg_marquardt(
         state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model, schur
     )
@@ -640,6 +767,15 @@ def bundle_adjust(
             result.ok = False
             result.message = f"motion not well posed: {result.motion.status} ({result.motion.message})"
     return result
+
+
+def _undistorted(obs: _PreparedObservations, K: Array, lam: Array) -> _PreparedObservations:
+    """The observations undistorted with the frames' coefficients (division model, closed form)."""
+    xh = np.column_stack([obs.xy, np.ones(len(obs.xy))])
+    n = np.einsum("nij,nj->ni", np.linalg.inv(K)[obs.frame_idx], xh)[:, :2]
+    n /= (1.0 + lam[obs.frame_idx] * np.sum(n * n, axis=1))[:, None]
+    xy = np.einsum("nij,nj->ni", K[obs.frame_idx], np.column_stack([n, np.ones(len(n))]))[:, :2]
+    return replace(obs, xy=xy, xy_t=np.ascontiguousarray(xy.T))
 
 
 def _cost(r: Array, prior_r: Array) -> float:
@@ -719,6 +855,27 @@ def _levenberg_marquardt(
     idx = np.where(layout.intr_index >= 0, layout.intr_index, len(sd) - 1)
     sigma_f = sd[idx[:, F]]
     sigma_pp = np.column_stack([sd[idx[:, CX]], sd[idx[:, CY]]])
+    extra: dict[str, Any] = {}
+    if state.lam is not None and layout.lam_index is not None:
+        extra = {"lam": state.lam.copy(), "sigma_lam": sd[layout.lam_index]}
+    elif state.curve is not None and layout.curve_index is not None:
+        # sigma of each frame's lam through the curve: J cov J^T with J = d lam / d (c, f)
+        _, dlam_dc, dlam_df = state.curve.derivatives(state.values[:, F])
+        idx_f = np.where(layout.intr_index[:, F] >= 0, layout.intr_index[:, F], -1)
+        var = []
+        for i in range(len(dlam_dc)):
+            cols = list(layout.curve_index) + ([int(idx_f[i])] if idx_f[i] >= 0 else [])
+            g = np.append(dlam_dc[i], dlam_df[i]) if idx_f[i] >= 0 else dlam_dc[i]
+            var.append(float(g @ cov[np.ix_(cols, cols)] @ g))
+        extra = {
+            "lam": state.lam.copy(),
+            "sigma_lam": np.sqrt(np.maximum(var, 0.0)),
+            "distortion_curve": (
+                state.curve.coefficients.copy(),
+                state.curve.f_ref,
+                state.curve.half_diagonal,
+            ),
+        }
 
     rays = np.full((int(ray_ids.max()) + 1, 3), np.nan)
     rays[ray_ids] = state.X
@@ -746,6 +903,7 @@ def _levenberg_marquardt(
             "n_observations": n_obs,
             "n_rays": n_rays,
             "model": model,
+            **extra,
         },
     )
 

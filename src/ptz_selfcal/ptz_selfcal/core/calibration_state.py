@@ -154,6 +154,9 @@ class SessionConfig:
     pp_prior_sigma_px: float = 20.0  # MAP principal point prior (eq. 27), 1-sigma each axis
     ba_noise_sigma_px: float = 1.0  # image noise that weighs the prior (eq. 27)
     ba_max_points_per_pair: int = 50
+    # with distortion estimated in the adjustment (raw points): more per pair, the distortion centre
+    # needs them (issue-6 bag replayed: focal median 0.32% with 50, 0.22% with 200)
+    ba_distortion_points_per_pair: int = 200
     ba_max_iterations: int = 30
     max_match_pairs: int = 256
     max_focal_ratio: float = 20.0  # homographies scaling more than this are tracker failures
@@ -191,6 +194,17 @@ class KeyframeBundleSolver:
     the solve; a frame without any match gets virtual correspondences from its homography to the
     reference (grid points visible in both) so that it stays in the adjustment. When the adjustment
     fails or is not better posed, the LM result is returned.
+
+    Radial distortion (core/lens_correction.SessionLensHook sets `lens`): the matches are then RAW
+    (distorted) pixels and the adjustment estimates one division coefficient per frame about the
+    principal point with everything else (core/bundle.py, distortion=True), starting from
+    lens.lam_guess(keyframe_id, f); a frame's virtual correspondences (its homography is on corrected
+    pixels) are distorted back with the lens model that corrected it, lens.distort(keyframe_id, pts),
+    so that they stand for the raw points and carry no assumption about the distortion centre.
+    The prior of eq. 27 is weighed with the image noise of the previous such solve (its residual
+    standard deviation, at most ba_noise_sigma_px): matches of raw points fit to ~0.05 px, and a prior
+    weighed for 1 px noise would act as a ~1 px prior that holds the principal point at the image
+    centre. `lens_estimate` keeps the last such solution for the hook. Keyframe id None = the reference.
     """
 
     def __init__(self, config: SessionConfig, matches: OrderedDict[tuple[int, int], KeyframeMatchSet]):
@@ -201,6 +215,10 @@ class KeyframeBundleSolver:
         self.last_method = ""
         self.last_message = ""
         self.sigma_f: dict[Any, float] = {}  # keyframe id -> 1-sigma of f in the last accepted solve
+        self.lens: Any = None  # lam_guess(keyframe_id, f), distort(keyframe_id, pts); None: undistorted
+        self.lens_estimate: LensEstimate | None = None
+        self.noise_estimate: float | None = None  # px, residual sigma of the last distortion solve
+        self.distortion_mode = "curve"  # lam per frame on a lam(f) curve ("curve") or free ("frame")
 
     def __call__(
         self,
@@ -226,7 +244,14 @@ class KeyframeBundleSolver:
     def _refine(
         self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
     ) -> SelfCalibrationResult:
-        if not lm.ok or not self.config.bundle_adjustment:
+        # raw-point solve: an LM start flagged only for its motion (section 6.2, LM on corrected
+        # homographies) is still refined, the adjustment's own analysis decides
+        usable = lm.ok or (
+            self.lens is not None
+            and bool(lm.info.get("solver_ok", False))
+            and bool(np.all(np.isfinite(lm.K)))
+        )
+        if not usable or not self.config.bundle_adjustment:
             return lm
         try:
             ba = self._bundle(H, image_size, lm, keyframes)
@@ -248,8 +273,16 @@ class KeyframeBundleSolver:
         index = {kf.keyframe_id: i + 1 for i, kf in enumerate(keyframes)}
         if self.reference_keyframe_id is not None:
             index[self.reference_keyframe_id] = 0
+        ids = [self.reference_keyframe_id, *(kf.keyframe_id for kf in keyframes)]
+        n_frames = len(H)
+        lam0 = None
+        if self.lens is not None:
+            lm = self._with_connectors(lm, index, ids, image_size)
+            lam0 = np.array([_guess(self.lens.lam_guess, k, float(K[1, 1])) for k, K in zip(ids, lm.K)])
         rng = np.random.default_rng(0)
         limit = self.config.ba_max_points_per_pair
+        if lam0 is not None:
+            limit = max(limit, self.config.ba_distortion_points_per_pair)
         pairs: list[tuple[int, int, Array, Array]] = []
         for m in self.matches.values():
             a, b = index.get(m.keyframe_id), index.get(m.other_keyframe_id)
@@ -262,15 +295,18 @@ class KeyframeBundleSolver:
             pairs.append((a, b, pa, pb))
         if not pairs:
             return None
-        seen = np.zeros(len(H), bool)
+        seen = np.zeros(len(lm.K), bool)
         for a, b, _, _ in pairs:
             seen[a] = seen[b] = True
         width, height = image_size
         grid = pixel_grid(width, height, 8)
-        for j in np.flatnonzero(~seen):
+        absent: list[int] = []
+        for j in np.flatnonzero(~seen[: len(H)]):
             # virtual correspondences reference <-> frame j from H_j (frame 0 <-> j when j > 0)
+            if j > 0 and lam0 is not None:
+                continue  # raw-point solve: left out below
             if j == 0:
-                k = int(np.flatnonzero(seen)[0])
+                k = int(np.flatnonzero(seen[: len(H)])[0])
                 Hk = H[k]
                 src = grid
                 dst = apply_homography(Hk, src)
@@ -278,6 +314,20 @@ class KeyframeBundleSolver:
             else:
                 dst = apply_homography(H[j], grid)
                 pairs.append((0, j, *_visible(grid, dst, width, height)))
+            if lam0 is not None:  # the homographies are on corrected pixels: distort the virtual points
+                a, b, src, dst = pairs[-1]
+                src, dst = self.lens.distort(ids[a], src), self.lens.distort(ids[b], dst)
+                ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
+                pairs[-1] = (a, b, src[ok], dst[ok])
+        if lam0 is not None:
+            # raw-point solve: frames not linked to the reference by real matches (none of their own,
+            # or a group whose links went with dropped keyframes) are left out and keep their LM
+            # calibration with the adjusted principal point. Virtual correspondences from corrected
+            # homographies would tie them (and through the shared principal point every frame) to the
+            # centre the lens correction assumed; a detached group's scale is free (sigma_f of several %)
+            linked = _linked_to_reference(pairs, len(lm.K))
+            absent = [j for j in range(1, len(lm.K)) if not linked[j]]
+            pairs = [p for p in pairs if linked[p[0]] and linked[p[1]]]
         model = IntrinsicsModel(
             principal_point=ParamMode.VARYING
             if self.config.ba_principal_point == "varying"
@@ -285,17 +335,144 @@ class KeyframeBundleSolver:
         )
         sigma = self.config.pp_prior_sigma_px
         prior = (np.array(image_centre(image_size)), np.array([sigma, sigma]))
-        return bundle_adjust(
+        noise = self.config.ba_noise_sigma_px
+        if lam0 is not None and self.noise_estimate is not None:
+            noise = min(max(self.noise_estimate, 0.02), noise)
+        keep = np.array([j for j in range(len(lm.K)) if j not in set(absent)], dtype=np.intp)
+        renumber = np.full(len(lm.K), -1, dtype=np.intp)
+        renumber[keep] = np.arange(len(keep))
+        pairs = [(int(renumber[a]), int(renumber[b]), pa, pb) for a, b, pa, pb in pairs]
+        result = bundle_adjust(
             pair_observations(pairs),
-            lm.K,
-            lm.R,
+            lm.K[keep],
+            lm.R[keep],
             image_size,
             model,
             pp_prior=prior,
-            noise_sigma=self.config.ba_noise_sigma_px,
+            noise_sigma=noise,
             max_iterations=self.config.ba_max_iterations,
             f_min=0.2 * float(np.min(lm.K[:, 1, 1])),
+            distortion=False if lam0 is None else self.distortion_mode,
+            lam_init=None if lam0 is None else lam0[keep],
         )
+        if lam0 is not None and result.ok and np.all(np.isfinite(result.info["lam"])):
+            self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
+            self.lens_estimate = LensEstimate(
+                principal_point=result.K[0, :2, 2].copy(),
+                sigma_pp=np.asarray(result.sigma_pp[0], dtype=float).copy(),
+                lam={ids[j]: float(lam) for j, lam in zip(keep, result.info["lam"]) if ids[j] is not None},
+                focal={ids[j]: float(K[1, 1]) for j, K in zip(keep, result.K) if ids[j] is not None},
+            )
+        if absent or len(lm.K) > n_frames:
+            # the frames left out: LM's focal length and rotation, the adjusted principal point
+            K, R = lm.K.copy(), lm.R.copy()
+            K[keep], R[keep] = result.K, result.R
+            K[absent, :2, 2] = result.K[0, :2, 2]
+            near = keep[keep < n_frames]
+            for j in absent:
+                if j >= n_frames or len(near) == 0:
+                    continue
+                # from the nearest adjusted frame through the short corrected homography between them
+                # (LM's own K carries the long chain's drift: 1.5% on the issue-6 bag)
+                k = int(near[np.argmin(np.abs(near - j))])
+                H_kj = H[j] @ np.linalg.inv(H[k])
+                with contextlib.suppress(
+                    SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError
+                ):
+                    K_j = intrinsics_from_transferred_diac(H_kj, K[k], IntrinsicsModel(), image_size)
+                    R_j = rotation_from_homography(H_kj, K[k], K_j) @ R[k]
+                    if np.all(np.isfinite(K_j)) and np.all(np.isfinite(R_j)):
+                        K[j], R[j] = K_j, R_j
+            sigma_f, sigma_pp = np.asarray(lm.sigma_f, dtype=float).copy(), np.asarray(lm.sigma_pp).copy()
+            sigma_f[keep], sigma_pp[keep] = result.sigma_f, result.sigma_pp
+            info = dict(result.info)
+            if lam0 is not None and "lam" in info:
+                lam = lam0.copy()
+                lam[keep] = info["lam"]
+                info["lam"] = lam[:n_frames]
+            result = dataclasses.replace(
+                result,
+                K=K[:n_frames],
+                R=R[:n_frames],
+                sigma_f=sigma_f[:n_frames],
+                sigma_pp=sigma_pp[:n_frames],
+                info=info,
+            )
+        return result
+
+    def _with_connectors(
+        self, lm: SelfCalibrationResult, index: dict[Any, int], ids: list[Any], image_size: tuple[int, int]
+    ) -> SelfCalibrationResult:
+        """Raw-point solve: keyframes the calibrator dropped but matched to one it kept join the
+        adjustment as connectors (appended to index and ids, started from their corrected chain by
+        eq. 20), so that the kept keyframes stay linked to the reference by real matches."""
+        extra_K, extra_R = [], []
+        for m in list(self.matches.values()):
+            for inside, other in ((m.keyframe_id, m.other_keyframe_id), (m.other_keyframe_id, m.keyframe_id)):
+                if inside not in index or other in index or len(m.points) < 8:
+                    continue
+                H_c = self.lens.keyframe_homography(other)
+                if H_c is None:
+                    continue
+                try:
+                    K_c = intrinsics_from_transferred_diac(H_c, lm.K[0], IntrinsicsModel(), image_size)
+                    R_c = rotation_from_homography(H_c, lm.K[0], K_c)
+                except (SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+                    continue
+                if np.all(np.isfinite(K_c)) and np.all(np.isfinite(R_c)):
+                    index[other] = len(ids)
+                    ids.append(other)
+                    extra_K.append(K_c)
+                    extra_R.append(R_c)
+        if not extra_K:
+            return lm
+        m_extra = len(extra_K)
+        return dataclasses.replace(
+            lm,
+            K=np.concatenate([lm.K, extra_K]),
+            R=np.concatenate([lm.R, extra_R]),
+            sigma_f=np.concatenate([np.asarray(lm.sigma_f, dtype=float), np.full(m_extra, np.nan)]),
+            sigma_pp=np.concatenate(
+                [np.asarray(lm.sigma_pp, dtype=float).reshape(-1, 2), np.full((m_extra, 2), np.nan)]
+            ),
+        )
+
+
+@dataclass(frozen=True)
+class LensEstimate:
+    """Distortion from the keyframe adjustment on raw points: the principal point (= distortion centre)
+    with its 1-sigma, and each frame's division coefficient lam at its focal length."""
+
+    principal_point: Array
+    sigma_pp: Array
+    lam: dict[int, float]
+    focal: dict[int, float]
+
+
+def _linked_to_reference(pairs: list[tuple[int, int, Array, Array]], n: int) -> NDArray[np.bool_]:
+    """(n,) whether each frame is connected to frame 0 through the pairs."""
+    neighbours: dict[int, set[int]] = {}
+    for a, b, pa, _ in pairs:
+        if len(pa):
+            neighbours.setdefault(a, set()).add(b)
+            neighbours.setdefault(b, set()).add(a)
+    linked = np.zeros(n, dtype=bool)
+    stack = [0]
+    linked[0] = True
+    while stack:
+        for k in neighbours.get(stack.pop(), ()):
+            if not linked[k]:
+                linked[k] = True
+                stack.append(k)
+    return linked
+
+
+def _guess(guess: Any, keyframe_id: int | None, f: float) -> float:
+    try:
+        lam = float(guess(keyframe_id, f))
+    except (ValueError, ArithmeticError, KeyError):
+        return 0.0
+    return lam if math.isfinite(lam) else 0.0
 
 
 def _visible(src: Array, dst: Array, width: int, height: int) -> tuple[Array, Array]:

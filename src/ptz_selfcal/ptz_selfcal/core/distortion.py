@@ -74,6 +74,19 @@ def division_distort(points_u: ArrayLike, lam: float, centre: ArrayLike, f: floa
     return c + u * scale[:, None]
 
 
+def distort_points(points_u: ArrayLike, K: ArrayLike, lam: float) -> Array:
+    """Distort (N, 2) undistorted pixels with the division model on normalised coordinates K^-1 x
+    about K's principal point (= division_distort with f = fx for square pixels and zero skew; the
+    projection of core/bundle.py's distortion=True adjustment)."""
+    K = np.asarray(K, dtype=float).reshape(3, 3)
+    pts = _as_points(points_u)
+    n = np.linalg.solve(K, np.column_stack([pts, np.ones(len(pts))]).T)[:2].T
+    disc = 1.0 - 4.0 * lam * np.einsum("ij,ij->i", n, n)
+    with np.errstate(invalid="ignore"):
+        scale = np.where(disc >= 0.0, 2.0 / (1.0 + np.sqrt(np.maximum(disc, 0.0))), np.nan)
+    return (n * scale[:, None]) @ K[:2, :2].T + K[:2, 2]
+
+
 def half_diagonal(width: int, height: int) -> float:
     """Distance in pixels from the image centre ((w-1)/2, (h-1)/2) to a corner pixel centre."""
     return 0.5 * float(np.hypot(width - 1.0, height - 1.0))

@@ -61,7 +61,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.distortion import division_to_plumb_bob, division_undistort
+from ptz_selfcal.core.distortion import division_distort, division_to_plumb_bob, division_undistort
 from ptz_selfcal.core.distortion_estimation import (
     DistortionVsFocal,
     KeyframeDistortionEstimator,
@@ -149,7 +149,7 @@ class LensCorrection:
     ) -> None:
         self.width, self.height = int(width), int(height)
         self.nominal_focal = float(nominal_focal)
-        self.centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+        self.centre0 = np.array([(width - 1) / 2.0, (height - 1) / 2.0])  # default distortion centre
         self.min_matches = int(min_matches)
         self.solve_every = max(int(solve_every), 1)
         self.tracker_below_px = float(tracker_below_px)
@@ -206,6 +206,16 @@ class LensCorrection:
         self._focal[kid] = float(f)
         self._centre[kid] = c
         self.estimator.set_keyframe(kid, float(f), c)
+
+    def set_centre(self, centre: ArrayLike) -> None:
+        """One distortion centre for every keyframe, known and new (the joint adjustment's principal
+        point); the next `update` re-estimates the coefficients about it."""
+        c = np.asarray(centre, dtype=float).reshape(2)
+        if not np.all(np.isfinite(c)):
+            return
+        self.centre0 = c.copy()
+        for kid, f in list(self._focal.items()):
+            self.set_keyframe(kid, f, c)
 
     def add_match(
         self, keyframe_id: int, other_keyframe_id: int, pts: ArrayLike, other_pts: ArrayLike
@@ -526,10 +536,17 @@ class SessionLensHook:
         resend: int = 64,
         centre_from_calibration: bool = False,
         hold_keyframes: bool = False,
+        joint_bundle: bool = True,
+        centre_gate_px: float = 2.0,
     ) -> None:
         self._nominal = nominal_focal_of_width
         self.hold_keyframes = hold_keyframes
         self.centre_from_calibration = centre_from_calibration
+        self.joint_bundle = joint_bundle
+        self.centre_gate_px = float(centre_gate_px)
+        self.centre: Array | None = None  # distortion centre from the joint adjustment (None: image centre)
+        self._estimate: Any = None  # the session solver's last LensEstimate taken
+        self.centre_updates = 0
         self.lens: LensCorrection | None = None
         self._reference: str | None = None
         self._queue: deque[tuple[int, int, Array, Array]] = deque(maxlen=4 * resend)
@@ -546,6 +563,7 @@ class SessionLensHook:
             self._size, self._reference = (width, height), reference
             self._queue.clear()
             self._raw_matches.clear()
+            self.centre = None
         return self.lens
 
     def frame(
@@ -577,7 +595,8 @@ class SessionLensHook:
             m = self._queue.popleft()
             if lens.add_match(*m):
                 self._raw_matches.append(m)
-        if lens.pending == 0:
+        moved = self._take_joint_estimate(session, lens)
+        if lens.pending == 0 and not moved:
             return False
         calibrator = getattr(session, "calibrator", None)
         if calibrator is not None:
@@ -601,7 +620,7 @@ class SessionLensHook:
                     continue
                 if np.all(np.isfinite(K)):
                     lens.set_keyframe(kid, K[0, 0], self._centre(K))
-        if not lens.update():
+        if not lens.update(force=moved):
             return False
         snap = lens.snapshot
         assert snap is not None
@@ -615,13 +634,74 @@ class SessionLensHook:
         for i, j, a, b in self._raw_matches:
             H_i, H_j = snap.H.get(i), snap.H.get(j)
             link = None if H_i is None or H_j is None else H_i @ np.linalg.inv(H_j)
-            session.add_keyframe_matches(i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link)
+            if self.joint_bundle:  # the adjustment fits the distortion itself: raw points
+                session.add_keyframe_matches(i, j, a, b, link)
+            else:
+                session.add_keyframe_matches(
+                    i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link
+                )
         return True
+
+    def _take_joint_estimate(self, session: Any, lens: LensCorrection) -> bool:
+        """With joint_bundle: plug the distortion guess into the session's solver (its adjustment then
+        runs on raw points, core/bundle.py distortion=True) and take its principal point as the
+        distortion centre once its 1-sigma is below centre_gate_px; True when the centre moved."""
+        solver = getattr(session, "solver", None)
+        if not self.joint_bundle or solver is None:
+            return False
+        solver.lens = self
+        estimate = getattr(solver, "lens_estimate", None)
+        if estimate is None or estimate is self._estimate:
+            return False
+        self._estimate = estimate
+        pp = np.asarray(estimate.principal_point, dtype=float)
+        sigma = np.asarray(estimate.sigma_pp, dtype=float)
+        if not (np.all(np.isfinite(pp)) and np.all(np.isfinite(sigma)) and sigma.max() < self.centre_gate_px):
+            return False
+        moved = self.centre is None or float(np.hypot(*(pp - self.centre))) > 0.1
+        self.centre = pp
+        if moved:
+            self.centre_updates += 1
+            lens.set_centre(pp)
+        return moved
+
+    def lam_guess(self, keyframe_id: int | None, f: float) -> float:
+        """The division coefficient of a keyframe (None: the reference) at focal length f from the
+        current estimate (its pixel-space kappa, else the lam(f) curve); 0.0 before any."""
+        lens = self.lens
+        snap = None if lens is None else lens.snapshot
+        if lens is None or snap is None:
+            return 0.0
+        kid = lens.reference_id if keyframe_id is None else int(keyframe_id)
+        if kid is None:
+            return snap.lam_at(f)
+        return float(lens._kappa_for(snap, kid)[0]) * f * f
+
+    def keyframe_homography(self, keyframe_id: int) -> Array | None:
+        """The corrected H reference -> keyframe (None: not chained)."""
+        return None if self.lens is None else self.lens.keyframe_homography(keyframe_id)
+
+    def distort(self, keyframe_id: int | None, pts: ArrayLike) -> Array:
+        """Corrected pixels of a keyframe (None: the reference) back to raw ones with the model that
+        corrected them (identity before the first estimate)."""
+        lens = self.lens
+        p = np.asarray(pts, dtype=float).reshape(-1, 2)
+        snap = None if lens is None else lens.snapshot
+        if lens is None or snap is None:
+            return p
+        kid = lens.reference_id if keyframe_id is None else int(keyframe_id)
+        if kid is None:
+            return p
+        kappa, c = lens._kappa_for(snap, kid)
+        return p if kappa == 0.0 else division_distort(p, kappa, c, 1.0)
 
     def _centre(self, K: Array) -> Array | None:
         # the distortion centre and the principal point are nearly interchangeable in rotation-only
-        # data (the estimate follows the assumed centre), so feeding the calibrated principal point
-        # back drifts; by default the centre stays at the image centre (None)
+        # data when estimated apart (the estimate follows the assumed centre), so feeding the
+        # calibrated principal point back drifts; the joint adjustment's centre (gated) is used when
+        # there is one, else the image centre (None)
+        if self.joint_bundle:
+            return self.centre
         return K[:2, 2] if self.centre_from_calibration else None
 
     def distortion(self, K: Array) -> Array:
