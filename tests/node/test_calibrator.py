@@ -244,6 +244,18 @@ def test_calibrates_every_frame_survives_garbage_and_restores_state(ros, tmp_pat
         assert fc.encoders.zoom == pytest.approx(f[late[-1]])
         # the garbage was counted in the diagnostics
         assert harness.spin_until(lambda: _diag_value(harness.diagnostics, "invalid_homographies") >= 3, 5.0)
+        # a wrong homography at a still zoom (issue 7: the right view at a 25 % wrong image scale, as a
+        # tracker locked onto a repetitive texture gives): the zoom gate refuses it, K from the zoom model
+        j0, kid = 100, 96
+        cx, cy = K[j0, 0, 2], K[j0, 1, 2]
+        wrong = np.array([[1.25, 0, -0.25 * cx], [0, 1.25, -0.25 * cy], [0, 0, 1]]) @ H[j0]
+        good = [harness.send(n + k, H[j0], HomographyStamped.TRACKING, kid, f[j0]) for k in (10, 11)]
+        refused = [harness.send(n + k, wrong, HomographyStamped.TRACKING, kid, f[j0]) for k in (20, 21, 22)]
+        assert all(harness.frames[s].status == FrameCalibration.CONVERGED for s in good)
+        assert all(_relative_f_error(harness.infos[s], K[j0]) < 0.005 for s in good)
+        assert {harness.frames[s].status for s in refused[1:]} == {FrameCalibration.PREDICTED_FROM_ZOOM}
+        assert all(_relative_f_error(harness.infos[s], K[j0]) < 0.02 for s in refused[1:])
+        assert harness.spin_until(lambda: _diag_value(harness.diagnostics, "zoom_gate_rejections") >= 2, 5.0)
     finally:
         output += stop(proc)
     assert (state_dir / "calibration_state.yaml").exists(), output

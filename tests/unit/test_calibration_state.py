@@ -10,6 +10,7 @@ import pytest
 
 from ptz_selfcal.core import calibration_state as cs
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+from ptz_selfcal.core.incremental import image_motion
 
 WIDTH, HEIGHT = 1280, 720
 PP = (639.5 + 15.0, 359.5 - 10.0)
@@ -171,3 +172,87 @@ def test_reference_change_restarts_the_calibration(calibrated) -> None:
     assert session.counters["reference_changes"] == before + 1
     assert out.status == cs.INITIALISING
     assert out.source == "zoom_model"  # the learned zoom model is the prior of the new map
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Frame gates (issue 7): a wrong homography is refused, keyframes of a fast move stay out of the solve
+@pytest.fixture(scope="module")
+def gated() -> tuple[cs.CalibratorSession, np.ndarray, np.ndarray, np.ndarray]:
+    K, H, f = sweep(120)
+    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    feed(session, H, f)
+    return session, K, H, f
+
+
+def frame_at(t: float, H: np.ndarray, zoom: float, kid: int, keyframe: bool = False) -> cs.FrameInput:
+    state = "NEW_KEYFRAME" if keyframe else "TRACKING"
+    return cs.FrameInput(t, H, state, WIDTH, HEIGHT, keyframe_id=kid, reference_id="ref", zoom=zoom)
+
+
+def keyframe_ids(session: cs.CalibratorSession) -> set[int]:
+    return {int(kf.keyframe_id) for kf in session.calibrator.keyframes}
+
+
+def test_zoom_gate_refuses_a_wrong_homography_and_keeps_the_calibration(gated) -> None:
+    session, K, H, f = gated
+    assert session.state == cs.CONVERGED and session._snapshot.zoom_table is not None
+    j, t = 100, 10.0  # zoom 1.7x, inside the learned range (1x..2.5x), held still below
+    truth = K[j][1, 1]
+    for i in range(3):  # good frames pass (K from the homography)
+        out = session.process(frame_at(t + i / 30, H[j], f[j], 96))
+        assert out.status == cs.CONVERGED and out.source == "calibration"
+        assert abs(out.K[1, 1] / truth - 1) < 1e-3
+    K_ref = session.calibrator.reference_K.copy()
+    solved_ids = keyframe_ids(session)
+    counters = dict(session.counters)
+    # a tracker failure: the right view at the wrong image scale (implies f 25 % too long, eq. 20)
+    zoom = np.array([[1.25, 0, -0.25 * PP[0]], [0, 1.25, -0.25 * PP[1]], [0, 0, 1]])
+    wrong = zoom @ H[j]
+    t += 0.5  # not a fast motion (the image corners move 0.3 widths per second)
+    # first frame of the jump: the encoder says still, the image zoomed: the keyframe is held back
+    out = session.process(frame_at(t, wrong, f[j], 1000, keyframe=True))
+    assert session.counters["unconfirmed_keyframes"] == counters["unconfirmed_keyframes"] + 1
+    # the wrong scale persists at a still zoom: refused, K from the zoom model
+    outs = [session.process(frame_at(t + i / 30, wrong, f[j], 1000 + i, keyframe=True)) for i in (1, 2)]
+    assert all(o.status == cs.PREDICTED_FROM_ZOOM and o.source == "zoom_model" for o in outs)
+    assert all(abs(o.K[1, 1] / truth - 1) < 0.02 for o in outs)
+    assert session.counters["zoom_gate_rejections"] == counters["zoom_gate_rejections"] + 2
+    # their keyframe matches stay out of the adjustment, and nothing of them reaches the solve
+    rng = np.random.default_rng(1)
+    x = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], (60, 2))
+    assert session.add_keyframe_matches(1002, 96, apply_homography(wrong @ np.linalg.inv(H[96]), x), x)
+    session.step(5.0)
+    assert keyframe_ids(session) == solved_ids
+    assert not any(max(pair) >= 1000 for pair in session.matches)
+    assert np.array_equal(session.calibrator.reference_K, K_ref)
+    # the right homography again: calibrated from it (held back once: the image zoomed back), then a
+    # good keyframe at the still zoom passes the gate and joins the solve
+    t += 0.5
+    for i in range(3):
+        out = session.process(frame_at(t + i / 30, H[j], f[j], 96))
+        assert out.status == cs.CONVERGED and abs(out.K[1, 1] / truth - 1) < 1e-3
+    out = session.process(frame_at(t + 0.1, H[j], f[j], 1010, keyframe=True))
+    assert out.status == cs.CONVERGED and abs(out.K[1, 1] / truth - 1) < 1e-3
+    session.step(5.0)
+    assert 1010 in keyframe_ids(session)
+    assert abs(session.calibrator.reference_K[1, 1] / K[0][1, 1] - 1) < 2e-3
+
+
+def test_keyframes_of_a_fast_move_stay_out_of_the_solve_but_are_calibrated(gated) -> None:
+    session, K, H, f = gated
+    j, t = 100, 20.0
+    fast = cs.SessionConfig().max_keyframe_motion
+    # 12 deg of pan: the image moves by a quarter of its width
+    pan = K[j] @ ptz_rotation(np.radians(12.0), 0.0) @ np.linalg.inv(K[j]) @ H[j]
+    moved = image_motion(H[j], pan, WIDTH, HEIGHT)
+    before = session.counters["fast_motion_keyframes"]
+    for kid, dt in ((2000, 1 / 30), (2001, 0.5)):  # a preset recall, then the same move in 0.5 s
+        session.process(frame_at(t, H[j], f[j], 96))
+        out = session.process(frame_at(t + dt, pan, f[j], kid, keyframe=True))
+        assert out.status == cs.CONVERGED and abs(out.K[1, 1] / K[j][1, 1] - 1) < 1e-3
+        t += 1.0
+    assert moved / (1 / 30) > fast > moved / 0.5
+    assert session.counters["fast_motion_keyframes"] == before + 1
+    session.step(5.0)
+    ids = keyframe_ids(session)
+    assert 2000 not in ids and 2001 in ids

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -14,8 +15,16 @@ from ptz_selfcal.core.geometry import (
     relative_rotation,
     rotation_angle,
 )
-from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator, Keyframe, lm_solver
-from ptz_selfcal.core.intrinsics import SQUARE_VARYING_PP
+from ptz_selfcal.core.incremental import (
+    CalibrationState,
+    IncrementalCalibrator,
+    Keyframe,
+    focal_disagrees,
+    image_motion,
+    intrinsics_from_transferred_diac,
+    lm_solver,
+)
+from ptz_selfcal.core.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
 from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
 
 SIZE = (640, 480)
@@ -166,3 +175,46 @@ def test_near_ambiguous_solution_is_kept_but_reported() -> None:
     K_j, _, sigma_f = calibrator.frame_intrinsics(np.eye(3))
     assert sigma_f / K_j[1, 1] > 0.02
     assert "near_ambiguous" in calibrator.message
+
+
+def test_image_motion_of_a_pan_and_a_zoom_in_image_widths() -> None:
+    K = intrinsic_matrix(800.0, *CENTRE)
+    H0 = np.eye(3)
+    # pan by atan(64 / 800): the centre moves 64 px = 0.1 widths, the corners a little more
+    H_pan = infinite_homography(K, K, ptz_rotation(math.atan(64.0 / 800.0), 0.0))
+    moved = image_motion(H0, H_pan, *SIZE)
+    assert 0.1 <= moved < 0.13
+    # zoom 1.1x about the centre: the corners move 10 % of their distance to it
+    H_zoom = infinite_homography(K, intrinsic_matrix(880.0, *CENTRE), np.eye(3))
+    assert abs(image_motion(H0, H_zoom, *SIZE) - 0.1 * math.hypot(*CENTRE) / SIZE[0]) < 1e-9
+    # the motion between two frames does not depend on the common reference
+    G = infinite_homography(K, K, ptz_rotation(0.3, -0.1))
+    assert abs(image_motion(H_pan @ G, H_zoom @ G, *SIZE) - image_motion(H_pan, H_zoom, *SIZE)) < 1e-9
+    assert image_motion(H0, H0, *SIZE) == 0.0
+    # a corner behind the camera (90 deg pan at this focal length) is an unbounded motion
+    assert (
+        image_motion(H0, infinite_homography(K, K, ptz_rotation(math.radians(89.0), 0.0)), *SIZE) == math.inf
+    )
+
+
+def test_focal_disagrees_in_log_f_beyond_the_floor_or_the_sigmas() -> None:
+    # the DIAC transfer of a homography with a wrong image scale implies a wrong f (eq. 20)
+    K_ref, K = intrinsic_matrix(800.0, *CENTRE), intrinsic_matrix(1200.0, *CENTRE)
+    R = ptz_rotation(0.05, 0.02)
+    good = infinite_homography(K_ref, K, R)
+    scale = np.array([[1.25, 0, -0.25 * CENTRE[0]], [0, 1.25, -0.25 * CENTRE[1]], [0, 0, 1]])
+    f_good = intrinsics_from_transferred_diac(good, K_ref, SQUARE_CONSTANT_PP, SIZE)[1, 1]
+    f_wrong = intrinsics_from_transferred_diac(scale @ good, K_ref, SQUARE_CONSTANT_PP, SIZE)[1, 1]
+    assert abs(f_good / 1200.0 - 1) < 1e-9 and abs(f_wrong / 1500.0 - 1) < 1e-6
+    assert not focal_disagrees(f_good, 1200.0, 1200.0, 0.01, 4.0, 0.1)
+    assert focal_disagrees(f_wrong, 1200.0, 1200.0, 0.01, 4.0, 0.1)
+    # symmetric in log f, floor and sigmas
+    assert focal_disagrees(1200.0 / 1.12, 1200.0, 1200.0, 0.0, 4.0, 0.1)
+    assert not focal_disagrees(1200.0 / 1.09, 1200.0, 1200.0, 0.0, 4.0, 0.1)
+    assert not focal_disagrees(f_wrong, 1200.0, 1200.0, 0.06, 4.0, 0.1)  # 4 sigma = 24 % > 22 %
+    # an interval prediction: inside it nothing disagrees
+    assert not focal_disagrees(1500.0, 1000.0, 1600.0, 0.0, 4.0, 0.1)
+    assert focal_disagrees(1800.0, 1000.0, 1600.0, 0.0, 4.0, 0.1)
+    # no usable value: disagrees (never trust it)
+    assert focal_disagrees(math.nan, 1200.0, 1200.0, 0.01, 4.0, 0.1)
+    assert focal_disagrees(-1.0, 1200.0, 1200.0, 0.01, 4.0, 0.1)

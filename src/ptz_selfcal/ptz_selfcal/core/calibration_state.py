@@ -51,6 +51,8 @@ from ptz_selfcal.core.incremental import (
     CalibrationState,
     IncrementalCalibrator,
     Keyframe,
+    focal_disagrees,
+    image_motion,
     intrinsics_from_transferred_diac,
 )
 from ptz_selfcal.core.intrinsics import (
@@ -79,6 +81,9 @@ DEGENERATE_MOTION = "DEGENERATE_MOTION"
 TRACKING_LOST = "TRACKING_LOST"
 PREDICTED_FROM_ZOOM = "PREDICTED_FROM_ZOOM"
 STATUSES = (INITIALISING, CALIBRATING, CONVERGED, DEGENERATE_MOTION, TRACKING_LOST, PREDICTED_FROM_ZOOM)
+
+# Verdicts of the zoom gate (CalibratorSession._zoom_gate).
+_PASS, _HOLD, _REFUSE = "pass", "hold", "refuse"
 
 # HomographyStamped.state names that carry a usable homography.
 TRACKING_STATES_WITH_H = ("TRACKING", "NEW_KEYFRAME", "RELOCALISED")
@@ -166,6 +171,17 @@ class SessionConfig:
     # solve of t seconds the next waits max(min_solve_period_s, t (1 - duty) / duty); 0 = no limit
     min_solve_period_s: float = 0.0
     max_solve_duty: float = 1.0
+    # Frame gates (issue 7). A homography whose K (DIAC transfer, eq. 20) contradicts the zoom model at
+    # the frame's zoom encoder by more than max(zoom_gate_floor, zoom_gate_sigmas sigma) in log f, inside
+    # the model's learned zoom range, is refused: PREDICTED_FROM_ZOOM, never a keyframe of the solve.
+    zoom_gate_sigmas: float = 4.0
+    zoom_gate_floor: float = 0.1
+    zoom_gate_still: float = 0.01  # judged only while zoom (encoder and image) changes less per frame
+    # Keyframes of a fast move (image corners moving more than this many image widths per second, i.e.
+    # 20 % of the width per frame at 30 fps: a preset recall, not tracking) stay out of the solve: their
+    # homographies chain over small overlaps and drift, and real cameras blur them. Their frames are
+    # still calibrated. (The CI synth bag's sweep moves up to ~11 % per frame.)
+    max_keyframe_motion: float = 6.0
 
     def nominal_focal(self, width: int) -> float:
         if self.nominal_focal_px > 0.0:
@@ -505,6 +521,8 @@ class _Snapshot:
     sigma_pp: tuple[float, float] = (math.nan, math.nan)
     # per keyframe of the solve: (H reference -> keyframe (unit det), K, R relative to the reference)
     keyframes: dict[int, tuple[Array, Array, Array]] = dataclasses.field(default_factory=dict)
+    # the zoom model over its learned range for the frame gate: (zoom, f, sigma_f), None without a model
+    zoom_table: tuple[Array, Array, Array] | None = None
 
 
 class CalibratorSession:
@@ -526,6 +544,9 @@ class CalibratorSession:
                 "calibrator_errors",
                 "zoom_model_samples",
                 "state_saves",
+                "zoom_gate_rejections",
+                "fast_motion_keyframes",
+                "unconfirmed_keyframes",
             ),
             0,
         )
@@ -546,6 +567,10 @@ class CalibratorSession:
         self.distortion_model: Any = None  # K -> plumb_bob D (None: distortion not estimated)
         self._keyframe_H: dict[int, Array] = {}  # keyframe -> H reference -> keyframe (as tracked)
         self._seen_keyframes: set[int] = set()
+        self._refused_keyframes: set[int] = set()  # keyframes whose homography the zoom gate refused
+        self._previous_frame: tuple[str | None, float, Array] | None = None  # (reference, stamp, H)
+        self._previous_zoom = math.nan  # zoom encoder of the previous frame
+        self._previous_focal = math.nan  # f of the previous frame from its homography (calibrated)
         self.last_good: FrameOutput | None = None
         self.zoom_model = ZoomModel()
         self._zoom_ready = False
@@ -568,9 +593,11 @@ class CalibratorSession:
         H = self._usable_homography(frame)
         if H is None:
             self.counters["frames_without_homography"] += 1
+            self._previous_focal = math.nan
             out = self._without_homography(frame)
         else:
             out = self._with_homography(frame, H)
+        self._previous_zoom = float(frame.zoom)
         out.time_s = time.perf_counter() - start
         self._frame_times.append(out.time_s)
         self.status_counts[out.status] += 1
@@ -612,27 +639,93 @@ class CalibratorSession:
             self.reference_id = frame.reference_id
             self._dirty = True
         kid = int(frame.keyframe_id)
-        if frame.tracking_state == "NEW_KEYFRAME" and kid not in self._seen_keyframes:
-            self._seen_keyframes.add(kid)
-            if len(self._seen_keyframes) > 8192:  # bounded memory: ids grow with the frame index
-                self._seen_keyframes = set(sorted(self._seen_keyframes)[4096:])
-            self._keyframe_H[kid] = H
-            if len(self._keyframe_H) > 4096:
-                self._keyframe_H.pop(next(iter(self._keyframe_H)))
-            self._pending.append(_PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom)))
+        fast = self._fast_motion(frame, H)
         snap = self._snapshot
+        calibrated = None
         if snap is not None and snap.calibrated:
             try:
                 K, R, sigma_f = self._frame_intrinsics(snap, H, kid)
                 if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
-                    return self._calibrated_output(snap, frame, K, R, sigma_f)
+                    calibrated = (K, R, sigma_f)
             except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
                 self._warn(f"frame intrinsics failed: {exc}")
+        verdict = _PASS
+        if calibrated is None:
+            self._previous_focal = math.nan
+        else:
+            verdict = self._zoom_gate(snap, frame, calibrated[0])
+        refused = verdict == _REFUSE
+        if frame.tracking_state == "NEW_KEYFRAME" and kid not in self._seen_keyframes:
+            self._seen_keyframes.add(kid)
+            if len(self._seen_keyframes) > 8192:  # bounded memory: ids grow with the frame index
+                self._seen_keyframes = set(sorted(self._seen_keyframes)[4096:])
+            if refused:  # a wrong homography: not in the solve, and no K is carried through it
+                self._refused_keyframes.add(kid)
+                if len(self._refused_keyframes) > 4096:
+                    self._refused_keyframes = set(sorted(self._refused_keyframes)[2048:])
+            else:
+                self._keyframe_H[kid] = H
+                if len(self._keyframe_H) > 4096:
+                    self._keyframe_H.pop(next(iter(self._keyframe_H)))
+                if fast:
+                    self.counters["fast_motion_keyframes"] += 1
+                elif verdict == _HOLD:
+                    self.counters["unconfirmed_keyframes"] += 1
+                else:
+                    self._pending.append(_PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom)))
+        if refused:
+            self.counters["zoom_gate_rejections"] += 1
+            return self._without_homography(frame)
+        if calibrated is not None:
+            return self._calibrated_output(snap, frame, *calibrated)
         status = DEGENERATE_MOTION if snap is not None and snap.state == DEGENERATE_MOTION else INITIALISING
         out = self._prior_output(frame, status, H)
         if snap is not None and snap.message:
             out.message = snap.message
         return out
+
+    def _fast_motion(self, frame: FrameInput, H: Array) -> bool:
+        """Whether the image moved faster than max_keyframe_motion since the previous frame with a
+        homography on the same reference (per second of stamps: frames shed upstream do not count)."""
+        previous = self._previous_frame
+        self._previous_frame = (self.reference_id, float(frame.stamp), H)
+        if previous is None or previous[0] != self.reference_id or self.image_size is None:
+            return False
+        dt = float(frame.stamp) - previous[1]
+        dt = dt if math.isfinite(dt) and dt > 0.0 else 1.0 / 30.0
+        motion = image_motion(previous[2], H, *self.image_size)
+        return motion / dt > self.config.max_keyframe_motion
+
+    def _zoom_gate(self, snap: _Snapshot, frame: FrameInput, K: Array) -> str:
+        """The zoom gate: K from the frame's homography against the zoom model at its zoom encoder.
+
+        Judged only inside the model's learned zoom range (outside it the model extrapolates) and while
+        the encoder says the zoom is still (the model at this and at the previous frame's encoder within
+        zoom_gate_still): while zooming the encoder can lag the image (frame_ingest pairs an image with
+        a sample up to max_hold older, and a fast zoom moves 50 % between frames). Then _HOLD when the
+        image zoomed since the previous frame all the same (a lagging encoder at the start of a zoom, or
+        a wrong homography: the frame keeps its K, its keyframe stays out of the solve), _REFUSE when
+        the focal length disagrees with the model (focal_disagrees), else _PASS.
+        """
+        previous_f, self._previous_focal = self._previous_focal, float(K[1, 1])
+        table = snap.zoom_table
+        zooms = np.array([frame.zoom, self._previous_zoom])
+        if table is None or not np.all(np.isfinite(zooms)):
+            return _PASS
+        z, f, sigma = table
+        if not (z[0] <= zooms.min() and zooms.max() <= z[-1]):
+            return _PASS
+        f_pred = np.interp(zooms, z, f)
+        c = self.config
+        if abs(math.log(f_pred[0] / f_pred[1])) > c.zoom_gate_still:
+            return _PASS
+        if not math.isfinite(previous_f) or abs(math.log(K[1, 1] / previous_f)) > c.zoom_gate_still:
+            return _HOLD
+        relative = float(np.interp(frame.zoom, z, sigma) / f_pred[0])
+        f_pred0 = float(f_pred[0])
+        if focal_disagrees(float(K[1, 1]), f_pred0, f_pred0, relative, c.zoom_gate_sigmas, c.zoom_gate_floor):
+            return _REFUSE
+        return _PASS
 
     def _frame_intrinsics(self, snap: _Snapshot, H: Array, keyframe_id: int) -> tuple[Array, Array, float]:
         """K_j, R_j, sigma_f in O(1).
@@ -667,6 +760,8 @@ class CalibratorSession:
         while kid not in snap.keyframes and kid in self._neighbour and len(chain) < 16:
             kid, h = self._neighbour[kid]
             chain.append(h)
+            if kid in self._refused_keyframes:
+                return None
         solved = snap.keyframes.get(kid)
         if solved is None:
             return None
@@ -857,6 +952,8 @@ class CalibratorSession:
                 self._do_reset()
             while self._pending_matches:
                 m = self._pending_matches.popleft()
+                if m.keyframe_id in self._refused_keyframes or m.other_keyframe_id in self._refused_keyframes:
+                    continue  # a keyframe whose homography was refused stays out of the adjustment
                 self.matches[(m.keyframe_id, m.other_keyframe_id)] = m
                 while len(self.matches) > self.config.max_match_pairs:
                     self.matches.popitem(last=False)
@@ -975,6 +1072,7 @@ class CalibratorSession:
             if ref is not None:
                 keyframes[int(ref)] = (np.eye(3), K_ref, np.eye(3))
         self._snapshot = _Snapshot(
+            zoom_table=self._zoom_table(),
             keyframes=keyframes,
             calibrator=snapshot_calibrator,
             calibrated=calibrator.calibrated,
@@ -983,6 +1081,21 @@ class CalibratorSession:
             residual=float(residual),
             keyframe_count=len(calibrator.keyframes) + 1,
         )
+
+    def _zoom_table(self, points: int = 17) -> tuple[Array, Array, Array] | None:
+        """The zoom model sampled over its learned range (zoom, f, sigma_f) for the frame thread's gate
+        (np.interp there: no lock, no spline evaluation per frame); None when there is no usable model."""
+        limits = self.zoom_model.covered_range() if self._zoom_ready else None
+        if limits is None:
+            return None
+        z = np.linspace(float(limits[0]), float(limits[1]), points)
+        try:
+            predictions = [self.zoom_model.predict(float(zi)) for zi in z]
+        except (ZoomModelError, ValueError, np.linalg.LinAlgError):
+            return None
+        f = np.array([p.K[1, 1] for p in predictions])
+        sigma = np.array([p.sigma_f for p in predictions])
+        return (z, f, sigma) if np.all(np.isfinite(f)) and np.all(f > 0.0) else None
 
     def _learn_zoom_model(self, calibrator: IncrementalCalibrator) -> None:
         """The converged calibration's keyframes (and reference) become the zoom model's LIVE samples,
@@ -1020,6 +1133,8 @@ class CalibratorSession:
         self._snapshot = None
         self.reference_id = None
         self._seen_keyframes.clear()
+        self._refused_keyframes.clear()
+        self._previous_frame = None
         self._pending.clear()
 
     def _do_reset(self) -> None:

@@ -18,6 +18,7 @@ Seam for bundle adjustment (section 5): `solver` is any callable with the signat
 from __future__ import annotations
 
 import enum
+import math
 import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
@@ -401,6 +402,43 @@ def intrinsics_from_transferred_diac(
     K = np.linalg.inv(N) @ K_n
     K = K / K[:, 2:3, 2:3]
     return K[0] if single else K
+
+
+def image_motion(H_a: ArrayLike, H_b: ArrayLike, width: int, height: int) -> float:
+    """Largest displacement, in image widths, of the image corners and centre from frame a to frame b.
+
+    H_a, H_b map a common reference to each frame, so H_b H_a^-1 is the frame-to-frame motion; a
+    preset recall moves a whole field of view in a few frames, normal tracking a few per cent.
+    """
+    M = np.asarray(H_b, dtype=float) @ np.linalg.inv(np.asarray(H_a, dtype=float))
+    x = np.array([[0.0, 0.0], [width - 1.0, 0.0], [0.0, height - 1.0], [width - 1.0, height - 1.0]])
+    x = np.vstack([x, [[0.5 * (width - 1.0), 0.5 * (height - 1.0)]]])
+    p = np.column_stack([x, np.ones(len(x))]) @ M.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        moved = np.linalg.norm(p[:, :2] / p[:, 2:3] - x, axis=1)
+    if not np.all(np.isfinite(moved)) or np.any(p[:, 2] <= 0.0):
+        return math.inf  # a corner went behind the camera: a huge motion, or a broken homography
+    return float(np.max(moved) / max(width, 1))
+
+
+def focal_disagrees(
+    f: float, f_low: float, f_high: float, relative_sigma: float, n_sigma: float, floor: float
+) -> bool:
+    """Whether a frame's focal length contradicts a prediction (the zoom model at its zoom encoder).
+
+    The prediction is the interval [f_low, f_high] (the zoom encoder may lag the image: the zoom model
+    at the previous and at this frame's zoom). Compared in log f (zoom acts multiplicatively): the
+    distance of log f from the interval beyond n_sigma times the prediction's relative 1-sigma, and
+    never below `floor` (a fraction). A frame's K comes from its homography by DIAC transfer (eq. 20),
+    so a gross disagreement means a wrong homography.
+    """
+    values = (f, f_low, f_high)
+    if not all(math.isfinite(v) and v > 0.0 for v in values):
+        return True
+    lo, hi = min(f_low, f_high), max(f_low, f_high)
+    distance = max(math.log(lo / f), math.log(f / hi), 0.0)
+    relative = relative_sigma if math.isfinite(relative_sigma) and relative_sigma > 0.0 else 0.0
+    return distance > max(floor, n_sigma * relative)
 
 
 def _fit_focal(diac: Array, K_ref: Array) -> Array:
