@@ -18,8 +18,12 @@ Threading model (the node runs `step` in a worker thread, never in the frame cal
 Statuses: INITIALISING (no calibration yet; K from the zoom model if one was loaded, else nominal
 parameters transferred through the frame's homography), DEGENERATE_MOTION (section 6: pan-only,
 tilt-only, tiny rotations at long focal length), CALIBRATING / CONVERGED (the calibrator's state),
-PREDICTED_FROM_ZOOM (no usable homography, K from the zoom model), TRACKING_LOST (no usable
-homography and no zoom model: the last good K).
+PREDICTED_FROM_ZOOM (no usable homography, or one the zoom gate refused: K from the zoom model),
+TRACKING_LOST (no usable homography and no zoom model: the last good K).
+
+Frame gates (issue 7, SessionConfig): a homography whose K contradicts the zoom model at a still zoom
+is refused; keyframes of a fast move (a preset recall) and keyframes whose image zoomed while the zoom
+encoder was still stay out of the solve (their frames keep the K of their homography).
 
 State files (in the node's `state_dir`) are only ever replaced atomically: temporary file in the same
 directory, fsync, os.replace, directory fsync. A corrupt or unreadable file is reported and ignored
@@ -176,7 +180,7 @@ class SessionConfig:
     # the model's learned zoom range, is refused: PREDICTED_FROM_ZOOM, never a keyframe of the solve.
     zoom_gate_sigmas: float = 4.0
     zoom_gate_floor: float = 0.1
-    zoom_gate_still: float = 0.01  # judged only while zoom (encoder and image) changes less per frame
+    zoom_gate_still: float = 0.01  # judged only while the zoom encoder changes less per frame
     # Keyframes of a fast move (image corners moving more than this many image widths per second, i.e.
     # 20 % of the width per frame at 30 fps: a preset recall, not tracking) stay out of the solve: their
     # homographies chain over small overlaps and drift, and real cameras blur them. Their frames are
@@ -571,6 +575,7 @@ class CalibratorSession:
         self._previous_frame: tuple[str | None, float, Array] | None = None  # (reference, stamp, H)
         self._previous_zoom = math.nan  # zoom encoder of the previous frame
         self._previous_focal = math.nan  # f of the previous frame from its homography (calibrated)
+        self._zoom_table_cache: tuple[tuple, tuple[Array, Array, Array] | None] = ((), None)
         self.last_good: FrameOutput | None = None
         self.zoom_model = ZoomModel()
         self._zoom_ready = False
@@ -703,9 +708,11 @@ class CalibratorSession:
         the encoder says the zoom is still (the model at this and at the previous frame's encoder within
         zoom_gate_still): while zooming the encoder can lag the image (frame_ingest pairs an image with
         a sample up to max_hold older, and a fast zoom moves 50 % between frames). Then _HOLD when the
-        image zoomed since the previous frame all the same (a lagging encoder at the start of a zoom, or
-        a wrong homography: the frame keeps its K, its keyframe stays out of the solve), _REFUSE when
-        the focal length disagrees with the model (focal_disagrees), else _PASS.
+        image zoomed by more than half the floor since the previous frame all the same (a lagging or
+        held encoder at the start of a fast zoom, or a wrong homography: the frame keeps its K, its
+        keyframe stays out of the solve), _REFUSE when the focal length disagrees with the model
+        (focal_disagrees: an encoder one frame behind a zoom of less than half the floor per frame
+        stays within the floor), else _PASS.
         """
         previous_f, self._previous_focal = self._previous_focal, float(K[1, 1])
         table = snap.zoom_table
@@ -719,7 +726,7 @@ class CalibratorSession:
         c = self.config
         if abs(math.log(f_pred[0] / f_pred[1])) > c.zoom_gate_still:
             return _PASS
-        if not math.isfinite(previous_f) or abs(math.log(K[1, 1] / previous_f)) > c.zoom_gate_still:
+        if not math.isfinite(previous_f) or abs(math.log(K[1, 1] / previous_f)) > 0.5 * c.zoom_gate_floor:
             return _HOLD
         relative = float(np.interp(frame.zoom, z, sigma) / f_pred[0])
         f_pred0 = float(f_pred[0])
@@ -1084,18 +1091,24 @@ class CalibratorSession:
 
     def _zoom_table(self, points: int = 17) -> tuple[Array, Array, Array] | None:
         """The zoom model sampled over its learned range (zoom, f, sigma_f) for the frame thread's gate
-        (np.interp there: no lock, no spline evaluation per frame); None when there is no usable model."""
+        (np.interp there: no lock, no spline evaluation per frame); None when there is no usable model.
+        Recomputed only when the model can have changed (a solve, a loaded model): ~7 ms each time."""
+        key = (self.counters["solves"], id(self.zoom_model), self._zoom_ready)
+        if key == self._zoom_table_cache[0]:
+            return self._zoom_table_cache[1]
         limits = self.zoom_model.covered_range() if self._zoom_ready else None
-        if limits is None:
-            return None
-        z = np.linspace(float(limits[0]), float(limits[1]), points)
-        try:
-            predictions = [self.zoom_model.predict(float(zi)) for zi in z]
-        except (ZoomModelError, ValueError, np.linalg.LinAlgError):
-            return None
-        f = np.array([p.K[1, 1] for p in predictions])
-        sigma = np.array([p.sigma_f for p in predictions])
-        return (z, f, sigma) if np.all(np.isfinite(f)) and np.all(f > 0.0) else None
+        table = None
+        if limits is not None:
+            z = np.linspace(float(limits[0]), float(limits[1]), points)
+            try:
+                predictions = [self.zoom_model.predict(float(zi)) for zi in z]
+                f = np.array([p.K[1, 1] for p in predictions])
+                sigma = np.array([p.sigma_f for p in predictions])
+                table = (z, f, sigma) if np.all(np.isfinite(f)) and np.all(f > 0.0) else None
+            except (ZoomModelError, ValueError, np.linalg.LinAlgError):
+                table = None
+        self._zoom_table_cache = (key, table)
+        return table
 
     def _learn_zoom_model(self, calibrator: IncrementalCalibrator) -> None:
         """The converged calibration's keyframes (and reference) become the zoom model's LIVE samples,
