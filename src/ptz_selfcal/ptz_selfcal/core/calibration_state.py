@@ -1059,6 +1059,15 @@ class CalibratorSession:
         if calibrator.state is CalibrationState.CONVERGED:
             self._learn_zoom_model(calibrator)
 
+    def keyframe_homographies_changed(self) -> None:
+        """The calibrator's keyframe homographies were replaced in place (core/lens_correction's
+        SessionLensHook after a distortion update): publish them, so that the frame thread composes a
+        frame's homography and its keyframe's from the same correction (a stale keyframe homography
+        against a re-corrected frame one: replayed issue-6 bag focal p90 2.6% instead of 0.7%)."""
+        with self._lock:
+            if self.calibrator is not None and self.image_size is not None:
+                self._publish_snapshot()
+
     def _publish_snapshot(self) -> None:
         calibrator = self.calibrator
         assert calibrator is not None

@@ -549,7 +549,8 @@ class SessionLensHook:
         self.centre_updates = 0
         self.lens: LensCorrection | None = None
         self._reference: str | None = None
-        self._queue: deque[tuple[int, int, Array, Array]] = deque(maxlen=4 * resend)
+        self._queue: deque[tuple[int, int, Array, Array, bool]] = deque(maxlen=4 * resend)
+        self._session: Any = None  # the session of the last `work` (joint mode: raw matches go to it)
         self._raw_matches: deque[tuple[int, int, Array, Array]] = deque(maxlen=resend)
         self._size: tuple[int, int] | None = None
         self.held_keyframes = 0
@@ -584,17 +585,26 @@ class SessionLensHook:
         return H, state
 
     def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
-        self._queue.append((int(keyframe_id), int(other_keyframe_id), pts, other_pts))
+        m = (int(keyframe_id), int(other_keyframe_id), pts, other_pts)
+        session, forwarded = self._session, False
+        if self.joint_bundle and session is not None:
+            # raw points are what the adjustment takes: on to the session at once, so that a new
+            # keyframe's frames reach a solved keyframe through this link before the worker runs
+            forwarded = bool(session.add_keyframe_matches(*m, None))
+        self._queue.append((*m, forwarded))
 
     def work(self, session: Any) -> bool:
         """Worker step; True when the distortion estimate changed."""
         lens = self.lens
         if lens is None:
             return False
+        self._session = session
         while self._queue:
-            m = self._queue.popleft()
+            *m, forwarded = self._queue.popleft()
             if lens.add_match(*m):
-                self._raw_matches.append(m)
+                self._raw_matches.append(tuple(m))
+            if self.joint_bundle and not forwarded:
+                session.add_keyframe_matches(*m, None)
         moved = self._take_joint_estimate(session, lens)
         if lens.pending == 0 and not moved:
             return False
@@ -631,15 +641,15 @@ class SessionLensHook:
                 H = snap.H.get(int(kf.keyframe_id))
                 if H is not None:
                     kf.H = H
+            changed = getattr(session, "keyframe_homographies_changed", None)
+            if changed is not None:
+                changed()
+        if self.joint_bundle:  # the adjustment fits the distortion itself: the raw points went already
+            return True
         for i, j, a, b in self._raw_matches:
             H_i, H_j = snap.H.get(i), snap.H.get(j)
             link = None if H_i is None or H_j is None else H_i @ np.linalg.inv(H_j)
-            if self.joint_bundle:  # the adjustment fits the distortion itself: raw points
-                session.add_keyframe_matches(i, j, a, b, link)
-            else:
-                session.add_keyframe_matches(
-                    i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link
-                )
+            session.add_keyframe_matches(i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link)
         return True
 
     def _take_joint_estimate(self, session: Any, lens: LensCorrection) -> bool:
