@@ -172,6 +172,9 @@ class LensCorrection:
         self._plumb_bob_size = int(plumb_bob_cache)
         self.snapshot: LensSnapshot | None = None
         self.stats = LensCorrectionStats()
+        # keyframe -> (parent, corrected link H parent -> keyframe, kappa, centre): a new keyframe's
+        # first link corrected at once by `provisional_link` until the worker chains it
+        self._provisional: OrderedDict[int, tuple[int, Array, float, Array]] = OrderedDict()
 
     # ---- inputs ------------------------------------------------------------------------------------
     def set_reference(self, keyframe_id: int) -> None:
@@ -444,6 +447,20 @@ class LensCorrection:
             return None
         kid = int(keyframe_id)
         base = kid if (kid in snap.H and kid in self._H_raw) else None
+        prov = self._provisional.get(kid)
+        if base is None and prov is not None and prov[0] in snap.H and kid in self._H_raw:
+            # not chained yet, its first link corrected on arrival (provisional_link)
+            parent, H_link, kappa, c = prov
+            H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[kid])
+            H_base = H_link @ snap.H[parent]
+            ratio = zoom_ratio(np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[parent]))
+            kappa_j = self._carry(snap, self._kappa_for(snap, parent)[0], parent, ratio)
+            if kappa != 0.0:
+                with contextlib.suppress(ValueError, np.linalg.LinAlgError):
+                    H_local = undistorted_homography(
+                        H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
+                    )
+            return normalise_homography(H_local @ H_base)
         if base is None:
             base = next((k for k in reversed(self._H_raw) if k in snap.H and k != kid), None)
         if base is None:
@@ -461,6 +478,40 @@ class LensCorrection:
                     H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
                 )
         return normalise_homography(H_local @ snap.H[base])
+
+    def provisional_link(
+        self, keyframe_id: int, parent_id: int, pts: ArrayLike, parent_pts: ArrayLike
+    ) -> bool:
+        """Correct a new keyframe's link to an older, chained keyframe at once (its raw inliers
+        undistorted with the parent's coefficient and the parent's carried over the link's zoom, one
+        homography fit, ~ms), so that the keyframe's frames use it instead of a long tracked span from
+        the newest chained keyframe until `update` chains the keyframe (a worker 15 frames behind:
+        replayed issue-6 bag). For the thread that calls `frame_homography`; True when stored."""
+        snap = self.snapshot
+        kid, parent = int(keyframe_id), int(parent_id)
+        if snap is None or kid in snap.H or parent not in snap.H or kid in self._provisional:
+            return False
+        if kid not in self._H_raw or parent not in self._H_raw or kid <= parent:
+            return False
+        a = np.asarray(pts, dtype=float).reshape(-1, 2)
+        b = np.asarray(parent_pts, dtype=float).reshape(-1, 2)
+        if len(a) != len(b) or len(a) < 12:
+            return False
+        kappa_p, c = self._kappa_for(snap, parent)
+        ratio = zoom_ratio(self._H_raw[kid] @ np.linalg.inv(self._H_raw[parent]))
+        kappa = self._carry(snap, kappa_p, parent, ratio)
+        try:
+            src = b if kappa_p == 0.0 else division_undistort(b, kappa_p, c, 1.0)
+            dst = a if kappa == 0.0 else division_undistort(a, kappa, c, 1.0)
+            H_link = estimate_homography(src, dst)
+        except (ValueError, np.linalg.LinAlgError):
+            return False
+        if not np.all(np.isfinite(H_link)):
+            return False
+        self._provisional[kid] = (parent, H_link, kappa, c)
+        while len(self._provisional) > 64:
+            self._provisional.popitem(last=False)
+        return True
 
     def undistort_points(self, keyframe_id: int, pts: ArrayLike) -> Array:
         """Keyframe points on corrected coordinates (identity before the first estimate)."""
@@ -586,6 +637,11 @@ class SessionLensHook:
 
     def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
         m = (int(keyframe_id), int(other_keyframe_id), pts, other_pts)
+        lens = self.lens
+        if lens is not None and self.joint_bundle:
+            child, parent, pc, pp = m if m[0] > m[1] else (m[1], m[0], m[3], m[2])
+            with contextlib.suppress(ValueError, ArithmeticError, np.linalg.LinAlgError):
+                lens.provisional_link(child, parent, pc, pp)
         session, forwarded = self._session, False
         if self.joint_bundle and session is not None:
             # raw points are what the adjustment takes: on to the session at once, so that a new
