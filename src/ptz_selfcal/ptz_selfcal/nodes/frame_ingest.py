@@ -4,8 +4,11 @@ Subscribes topics.IMAGE_RAW and/or topics.IMAGE_COMPRESSED (parameter `input`) a
 publishes one IngestedFrame per usable image on topics.FRAME_IN with the encoders interpolated to the
 image stamp (core/encoders.py), the full-resolution size and the working scale; DiagnosticArray on
 topics.DIAGNOSTICS. Unusable images (unsupported or lying encoding, step/size mismatch, zero or huge
-size, undecodable compressed data, duplicate stamps) are counted per kind, logged once per kind and
-skipped; black or flat frames pass (the tracker decides). Run:
+size, undecodable compressed data, truncated messages, duplicate stamps) are counted per kind, logged once
+per kind and skipped; black or flat frames pass (the tracker decides). Images are taken serialized
+(raw subscriptions) and read in place (nodes/conversions.parse_serialized_image), so a huge one is refused
+from its header without a copy of its pixels. Every encoder message already received is taken at once,
+so frames never wait behind a backlog of them. Run:
     python -m ptz_selfcal.nodes.frame_ingest --ros-args -p working_width:=640
 """
 
@@ -127,7 +130,12 @@ PARAMS = [
         in_range(0, 100),
     ),
     Param("max_image_pixels", 50_000_000, "larger images are refused before decoding", in_range(1, 1 << 40)),
-    Param("max_image_bytes", 200_000_000, "larger image payloads are refused", in_range(1, 1 << 40)),
+    Param(
+        "max_image_bytes",
+        200_000_000,
+        "larger image payloads are refused (read from the serialized message's header, before any copy)",
+        in_range(1, 1 << 40),
+    ),
     Param("mono16_max", 65535, "mono16 value shown as white (4095 for a 12-bit sensor)", in_range(1, 65535)),
     Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
 ]
