@@ -146,6 +146,7 @@ def bad_input(domain: Domain, work: Path, lines: list[str]) -> None:
                 f"{peak_before['frame_ingest']:.0f} MB before the catalogue + "
                 f"{(sampler.peak['frame_ingest'] - peak_before['frame_ingest']) / 256:.2f} x 256 MB; RSS at "
                 f"the end {sampler.now['frame_ingest']:.0f} MB)",
+                f"   {huge_image_copies()}",
                 f"   {ingest_cost()}",
                 f"   {latency_line(lat)}",
                 "   nodes alive at the end: " + ", ".join(f"{n} {p.alive()}" for n, p in nodes.items()),
@@ -198,6 +199,42 @@ def ingest_cost(repeats: int = 40) -> str:
     return (
         "ingest CPU per frame, serialized image -> working mono8, deserialised -> raw subscription read in "
         + ("place: " + ", ".join(parts))
+    )
+
+
+def huge_image_copies() -> str:
+    """Peak memory (this process's high-water mark, reset before each) of taking a serialized 256 MB
+    16k x 16k Image to frame_ingest's size check: rclpy's deserialisation (the node's path before it
+    subscribed raw) against reading it in place."""
+    import array
+
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import Image
+
+    from ptz_selfcal.nodes.conversions import FrameError, image_to_working, parse_serialized_image
+
+    side = 16384
+    msg = Image(height=side, width=side, encoding="mono8", step=side)
+    pixels = array.array("B")
+    pixels.frombytes(bytes(side * side))
+    msg.data = pixels
+    data = serialize_message(msg)
+    del msg, pixels
+    growth = {}
+    for name, read in (
+        ("deserialised", lambda: deserialize_message(data, Image)),
+        ("read in place", lambda: parse_serialized_image(data)),
+    ):
+        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
+        base = rh.rss_mb(os.getpid())
+        image = read()
+        with contextlib.suppress(FrameError):  # refused as too large: the point of the check
+            image_to_working(image, 640)
+        del image
+        growth[name] = rh.rss_mb(os.getpid(), "VmHWM") - base
+    return (
+        f"the serialized 256 MB image taken to the size check (in this process): deserialised +"
+        f"{growth['deserialised']:.0f} MB peak, read in place +{growth['read in place']:.0f} MB"
     )
 
 
