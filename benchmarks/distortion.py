@@ -202,6 +202,67 @@ def keyframe_homographies(run: dict, lines: list[str]) -> None:
         )
 
 
+def joint_bundle(run: dict, lines: list[str]) -> None:
+    """The keyframe bundle adjustment with distortion (core/bundle.py distortion=...) on the OFF run's
+    raw keyframe matches, all keyframes, from f +2%, the principal point at the image centre, lam = 0
+    and the true rotations; MAP prior of eq. 27 (sigma 20 px) weighed with the noise of a first pass
+    (as core/calibration_state.KeyframeBundleSolver does)."""
+    from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior, pair_observations
+
+    W, H = run["size"]
+    ids = sorted(run["H"])
+    index = {k: i for i, k in enumerate(ids)}
+    truth = []
+    for k in ids:
+        st = run["stamp"][k]
+        g, j = run["gt"][st], run["js"][st]
+        truth.append(
+            (np.asarray(g.k, dtype=float).reshape(3, 3), float(g.d[0]), ptz_rotation(j["pan"], j["tilt"]))
+        )
+    K = np.array([t[0] for t in truth])
+    lam = np.array([t[1] for t in truth])
+    R = np.array([t[2] for t in truth])
+    R = np.einsum("nij,kj->nik", R, R[0])
+    pairs = [(index[i], index[j], a, b) for i, j, a, b in run["matches"] if i in index and j in index]
+    obs = pair_observations(pairs)
+    K0 = K.copy()
+    K0[:, 0, 0] *= 1.02
+    K0[:, 1, 1] *= 1.02
+    K0[:, 0, 2], K0[:, 1, 2] = (W - 1) / 2.0, (H - 1) / 2.0
+    prior = default_pp_prior((W, H), 20.0)
+    lines.append(
+        f"   keyframe bundle adjustment with distortion on the raw keyframe matches ({len(ids)} keyframes, "
+        f"{len(pairs)} pairs, {len(obs.xy) // 2} points; start f +2%, pp at the image centre, lam 0):"
+    )
+    lines.append(
+        f"     {'model':<44} {'pp err':>7} {'sigma':>6} {'f err med':>9} {'max':>7} "
+        f"{'lam err':>8} {'dist err':>9}"
+    )
+    for label, model, mode in (
+        ("lam per keyframe, pp = distortion centre", IntrinsicsModel(), "frame"),
+        ("lam(f) curve, pp = distortion centre", IntrinsicsModel(), "curve"),
+        ("lam(f) curve, centre held at the image centre", IntrinsicsModel.square_known_pp(), "curve"),
+    ):
+        start = time.perf_counter()
+        first = bundle_adjust(obs, K0, R, (W, H), model, pp_prior=prior, distortion=mode, analyse=False)
+        noise = math.sqrt(first.info["residual_variance"])
+        res = bundle_adjust(
+            obs, K0, R, (W, H), model, pp_prior=prior, noise_sigma=noise, distortion=mode, analyse=False
+        )
+        seconds = time.perf_counter() - start
+        fe = np.abs(res.K[:, 0, 0] / K[:, 0, 0] - 1.0) * 100
+        pp = float(np.linalg.norm(res.K[0, :2, 2] - K[0, :2, 2]))
+        d_err = [
+            max_distortion_difference(("division", [le], Kt), ("division", [lt], Kt), W, H)
+            for le, lt, Kt in zip(res.info["lam"], lam, K)
+        ]
+        lines.append(
+            f"     {label:<44} {pp:>5.2f}px {res.sigma_pp[0].max():>4.2f}px {np.median(fe):>8.3f}% "
+            f"{fe.max():>6.3f}% {100 * np.median(np.abs(res.info['lam'] / lam - 1)):>7.2f}% "
+            f"{np.median(d_err):>7.2f}px  (rms {res.residual:.3f} px, {seconds:.1f} s)"
+        )
+
+
 def per_frame_correction(bag: Path, lines: list[str]) -> None:
     """Does the per-frame homography need correcting? The OFF run's tracker output replayed inline
     (no DDS, the worker's step after every keyframe) through CalibratorSession + SessionLensHook,
@@ -452,7 +513,9 @@ def main() -> int:
         lines.append(f"bag: {bag}")
     live: list[str] = []
     on, off, state_dir = pipeline(bag, work, live)
-    keyframe_homographies(read_run(Path(off["output_bag"])), lines)
+    run = read_run(Path(off["output_bag"]))
+    keyframe_homographies(run, lines)
+    joint_bundle(run, lines)
     per_frame_correction(Path(off["output_bag"]), lines)
     lines += live
     zoom_model(bag, work, on, state_dir, lines)

@@ -175,6 +175,10 @@ class LensCorrection:
         # keyframe -> (parent, corrected link H parent -> keyframe, kappa, centre): a new keyframe's
         # first link corrected at once by `provisional_link` until the worker chains it
         self._provisional: OrderedDict[int, tuple[int, Array, float, Array]] = OrderedDict()
+        # the joint adjustment's estimate (set_joint): per-keyframe kappa and the lam(f) curve, which
+        # take precedence over the estimator's own
+        self._joint_kappa: dict[int, float] = {}
+        self._joint_curve: DistortionVsFocal | None = None
 
     # ---- inputs ------------------------------------------------------------------------------------
     def set_reference(self, keyframe_id: int) -> None:
@@ -209,6 +213,24 @@ class LensCorrection:
         self._focal[kid] = float(f)
         self._centre[kid] = c
         self.estimator.set_keyframe(kid, float(f), c)
+
+    def set_joint(self, focal: dict[int, float], lam: dict[int, float]) -> bool:
+        """The keyframe bundle adjustment's distortion (raw points, about its principal point, which
+        `set_centre` made the centre): its per-keyframe lam at its focal lengths become the keyframes'
+        coefficients, and the lam(f) curve is refitted through them (DistortionVsFocal, the same family
+        as the adjustment's). The next `update` rechains with them. False when unusable."""
+        f = np.array([focal[k] for k in lam if k in focal], dtype=float)
+        la = np.array([lam[k] for k in lam if k in focal], dtype=float)
+        ok = np.isfinite(f) & np.isfinite(la) & (f > 0.0)
+        if ok.sum() < 2:
+            return False
+        try:
+            curve = DistortionVsFocal(self.width, self.height).fit(f[ok], la[ok])
+        except (ValueError, np.linalg.LinAlgError):
+            return False
+        self._joint_kappa = {int(k): lam[k] / focal[k] ** 2 for k in lam if k in focal and focal[k] > 0.0}
+        self._joint_curve = curve
+        return True
 
     def set_centre(self, centre: ArrayLike) -> None:
         """One distortion centre for every keyframe, known and new (the joint adjustment's principal
@@ -294,6 +316,9 @@ class LensCorrection:
         else:
             assert prev is not None
             kappa, curve, rms, rms0 = dict(prev.kappa), prev.curve, prev.rms_px, prev.rms_uncorrected_px
+        kappa.update(self._joint_kappa)
+        if self._joint_curve is not None:
+            curve = self._joint_curve
         self._unchained = 0
         snap = LensSnapshot(kappa, dict(self._centre), dict(self._focal), {}, curve, rms, rms0)
         self._rechain(snap)
@@ -447,22 +472,18 @@ class LensCorrection:
             return None
         kid = int(keyframe_id)
         base = kid if (kid in snap.H and kid in self._H_raw) else None
-        prov = self._provisional.get(kid)
-        if base is None and prov is not None and prov[0] in snap.H and kid in self._H_raw:
-            # not chained yet, its first link corrected on arrival (provisional_link)
-            parent, H_link, kappa, c = prov
-            H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[kid])
-            H_base = H_link @ snap.H[parent]
-            ratio = zoom_ratio(np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[parent]))
-            kappa_j = self._carry(snap, self._kappa_for(snap, parent)[0], parent, ratio)
-            if kappa != 0.0:
-                with contextlib.suppress(ValueError, np.linalg.LinAlgError):
-                    H_local = undistorted_homography(
-                        H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
-                    )
-            return normalise_homography(H_local @ H_base)
         if base is None:
-            base = next((k for k in reversed(self._H_raw) if k in snap.H and k != kid), None)
+            # not chained yet: its own provisional chain (provisional_link), else the newest keyframe
+            # with a chain or a provisional one
+            for k in (kid, *(k for k in reversed(self._H_raw) if k != kid)):
+                if k not in self._H_raw or not (k in snap.H or k in self._provisional):
+                    continue
+                chained = self._provisional_chain(snap, k)
+                if chained is not None:
+                    return self._from_base(snap, H_raw, k, *chained)
+                if k in snap.H:
+                    base = k
+                    break
         if base is None:
             return None
         H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[base])
@@ -479,6 +500,33 @@ class LensCorrection:
                 )
         return normalise_homography(H_local @ snap.H[base])
 
+    def _provisional_chain(
+        self, snap: LensSnapshot, kid: int, depth: int = 0
+    ) -> tuple[Array, float, Array] | None:
+        """(corrected H reference -> kid, kappa, centre) through provisional links down to a chained
+        keyframe; None when kid is chained itself or has no such path."""
+        prov = self._provisional.get(kid)
+        if prov is None or kid in snap.H or depth > 16:
+            return None
+        parent, H_link, kappa, c = prov
+        if parent in snap.H:
+            return H_link @ snap.H[parent], kappa, c
+        up = self._provisional_chain(snap, parent, depth + 1)
+        return None if up is None else (H_link @ up[0], kappa, c)
+
+    def _from_base(
+        self, snap: LensSnapshot, H_raw: ArrayLike, base: int, H_base: Array, kappa: float, c: Array
+    ) -> Array:
+        """Corrected H reference -> frame: the tracked base -> frame part refitted, then H_base."""
+        H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[base])
+        if kappa != 0.0:
+            kappa_j = self._carry(snap, kappa, base, zoom_ratio(H_local))
+            with contextlib.suppress(ValueError, np.linalg.LinAlgError):
+                H_local = undistorted_homography(
+                    H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
+                )
+        return normalise_homography(H_local @ H_base)
+
     def provisional_link(
         self, keyframe_id: int, parent_id: int, pts: ArrayLike, parent_pts: ArrayLike
     ) -> bool:
@@ -489,7 +537,10 @@ class LensCorrection:
         replayed issue-6 bag). For the thread that calls `frame_homography`; True when stored."""
         snap = self.snapshot
         kid, parent = int(keyframe_id), int(parent_id)
-        if snap is None or kid in snap.H or parent not in snap.H or kid in self._provisional:
+        if snap is None or kid in snap.H or kid in self._provisional:
+            return False
+        up = None if parent in snap.H else self._provisional_chain(snap, parent)
+        if parent not in snap.H and up is None:
             return False
         if kid not in self._H_raw or parent not in self._H_raw or kid <= parent:
             return False
@@ -497,7 +548,7 @@ class LensCorrection:
         b = np.asarray(parent_pts, dtype=float).reshape(-1, 2)
         if len(a) != len(b) or len(a) < 12:
             return False
-        kappa_p, c = self._kappa_for(snap, parent)
+        kappa_p, c = self._kappa_for(snap, parent) if up is None else (up[1], up[2])
         ratio = zoom_ratio(self._H_raw[kid] @ np.linalg.inv(self._H_raw[parent]))
         kappa = self._carry(snap, kappa_p, parent, ratio)
         try:
@@ -711,7 +762,8 @@ class SessionLensHook:
     def _take_joint_estimate(self, session: Any, lens: LensCorrection) -> bool:
         """With joint_bundle: plug the distortion guess into the session's solver (its adjustment then
         runs on raw points, core/bundle.py distortion=True) and take its principal point as the
-        distortion centre once its 1-sigma is below centre_gate_px; True when the centre moved."""
+        distortion centre, and its coefficients, once its 1-sigma is below centre_gate_px; True when
+        they changed."""
         solver = getattr(session, "solver", None)
         if not self.joint_bundle or solver is None:
             return False
@@ -729,7 +781,9 @@ class SessionLensHook:
         if moved:
             self.centre_updates += 1
             lens.set_centre(pp)
-        return moved
+        # its coefficients too (about that centre): they come from the raw points of every keyframe
+        # of the solve (issue-6 bag offline: distortion error 0.04 px)
+        return lens.set_joint(dict(estimate.focal), dict(estimate.lam)) or moved
 
     def lam_guess(self, keyframe_id: int | None, f: float) -> float:
         """The division coefficient of a keyframe (None: the reference) at focal length f from the
