@@ -653,6 +653,7 @@ class SessionLensHook:
         self._reference: str | None = None
         self._queue: deque[tuple[int, int, Array, Array, bool]] = deque(maxlen=4 * resend)
         self._session: Any = None  # the session of the last `work` (joint mode: raw matches go to it)
+        self._early_links: dict[int, tuple[int, Array, Array]] = {}  # matches before their keyframe
         self._raw_matches: deque[tuple[int, int, Array, Array]] = deque(maxlen=resend)
         self._size: tuple[int, int] | None = None
         self.held_keyframes = 0
@@ -666,6 +667,7 @@ class SessionLensHook:
             self._size, self._reference = (width, height), reference
             self._queue.clear()
             self._raw_matches.clear()
+            self._early_links.clear()
             self.centre = None
         return self.lens
 
@@ -678,6 +680,9 @@ class SessionLensHook:
         kid = int(keyframe_id)
         if state == "NEW_KEYFRAME":
             lens.add_keyframe(kid, H)
+            waiting = self._early_links.pop(kid, None)
+            if waiting is not None:  # its matches came first
+                self._link_now(lens, kid, *waiting)
         corrected = lens.frame_homography(H, kid)
         if corrected is not None:
             return corrected, state
@@ -691,8 +696,7 @@ class SessionLensHook:
         lens = self.lens
         if lens is not None and self.joint_bundle:
             child, parent, pc, pp = m if m[0] > m[1] else (m[1], m[0], m[3], m[2])
-            with contextlib.suppress(ValueError, ArithmeticError, np.linalg.LinAlgError):
-                lens.provisional_link(child, parent, pc, pp)
+            self._link_now(lens, child, parent, pc, pp)
         session, forwarded = self._session, False
         if self.joint_bundle and session is not None:
             # raw points are what the adjustment takes: on to the session at once, so that a new
@@ -758,6 +762,17 @@ class SessionLensHook:
             link = None if H_i is None or H_j is None else H_i @ np.linalg.inv(H_j)
             session.add_keyframe_matches(i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link)
         return True
+
+    def _link_now(self, lens: LensCorrection, child: int, parent: int, pc: Array, pp: Array) -> None:
+        """provisional_link, or kept for the keyframe's NEW_KEYFRAME homography when the matches
+        arrive before it (the two topics are not ordered)."""
+        if child not in lens._H_raw:
+            self._early_links[child] = (parent, pc, pp)
+            while len(self._early_links) > 16:
+                self._early_links.pop(next(iter(self._early_links)))
+            return
+        with contextlib.suppress(ValueError, ArithmeticError, np.linalg.LinAlgError):
+            lens.provisional_link(child, parent, pc, pp)
 
     def _take_joint_estimate(self, session: Any, lens: LensCorrection) -> bool:
         """With joint_bundle: plug the distortion guess into the session's solver (its adjustment then
