@@ -38,12 +38,24 @@ links from the reference, gives 0.7 px and f within 0.1% (benchmarks/distortion.
 - `undistort_points(id, pts)`: keyframe matches on corrected coordinates for the bundle adjustment
   (section 5).
 
-Known limit: the distortion centre. In rotation-only data it is nearly interchangeable with the
-principal point (self-calibration's principal point follows the assumed centre almost one to one, the
-pair residuals do not see it), and feeding the calibrated principal point back as the centre diverges
-(-210 px). The centre therefore stays at the image centre (`SessionLensHook.centre_from_calibration`
-off): on the issue-6 bag, whose principal point is 18 px off centre, the principal point error stays
-~20 px and the focal error ~0.6% (with the true centre the same chains give 0.08%).
+The distortion centre. In rotation-only data it is nearly interchangeable with the principal point
+when the two are estimated apart (self-calibration on corrected homographies follows the assumed
+centre almost one to one; feeding its principal point back as the centre diverged, -210 px). So the
+keyframe bundle adjustment estimates them as ONE point, with the distortion, on the raw keyframe
+matches (core/bundle.py distortion="curve", core/calibration_state.KeyframeBundleSolver with
+`SessionLensHook` as its `lens`): no corrected data enters it, so there is no feedback loop. Once its
+principal point's 1-sigma is below `centre_gate_px` the hook makes it the centre here (`set_centre`)
+and the adjustment's per-keyframe coefficients and lam(f) curve replace the estimator's (`set_joint`).
+On the issue-6 bag (principal point 18 px off centre) the adjustment alone recovers it within ~1 px
+(benchmarks/distortion.py part 1), where holding the centre at the image centre left ~20 px and a
+focal error ~0.6%. Until the gate opens the centre is the image centre. `joint_bundle=False` keeps the
+older path (corrected matches to the adjustment, centre at the image centre or, with
+`centre_from_calibration`, the calibrated principal point).
+
+While the worker is behind (a solve takes ~0.2-0.7 s, keyframes come every few frames at the tele
+end), a new keyframe's first link is corrected on arrival (`provisional_link`, on the parent's chain or
+its provisional one): without it the keyframe's frames use a long tracked span from the newest chained
+keyframe, 35-70% off on the issue-6 bag.
 
 Pure: numpy + the core modules, no rclpy. Not thread-safe by itself: `update` builds a new immutable
 `LensSnapshot` and swaps it in one assignment, so a frame thread may read `snapshot` concurrently.
