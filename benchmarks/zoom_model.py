@@ -10,19 +10,22 @@ For each bag (`ptz-selfcal synth bags/source/examplepano.jpg BAG --frames 300`, 
    (the encoder range where the model has samples, ZoomPrediction.in_range): focal error median / max
    (target max <= 1%), principal point error, distortion error (largest displacement difference over the
    image, DESIGN.md section 7), and how often the truth lies within 2 sigma_f.
-2. A second run restarted on that state_dir: focal error of its first frame (target <= 1%) and the
-   largest over its first 10 frames.
-3. The floor set by the encoders themselves: the TRUE lens law at the interpolated encoder value, with
-   the frame_ingest `encoder_time_offset` used and with 0. The synth encoders stamp 40 ms late
-   (synth_params.yaml encoders.lag_s; "ingest time_offset = -lag"): while zooming at up to 35 %/s, a
-   40 ms lag alone is a 1.4 % focal error whatever the model, so the runs use time_offset = -lag unless
-   --time-offset is given.
+2. Restarts: run 2 on that state_dir (calibration state and zoom model), run 3 on the zoom model alone
+   (calibration state removed, the first frames' K come from the model): focal error of the first frame
+   (target <= 1%) and the largest over the first 10; and the models runs 2 and 3 saved (run 1's history
+   kept, run 3's new calibration levelled against it) on run 1's frames.
+3. The encoder floor: the TRUE lens law at the interpolated encoder value with the frame_ingest
+   `encoder_time_offset` used (and with 0), and at the values frame_ingest attached to the frames. The
+   synth encoders stamp 40 ms late (synth_params.yaml encoders.lag_s; "ingest time_offset = -lag"):
+   while zooming at up to 35 %/s a 40 ms lag is a 1.4 % focal error at the encoder value. Each bag runs
+   with time_offset = -lag (configured) and with 0, where the model learns the lag itself from the
+   keyframes' zoom rates (ZoomModel.lag) and predicts from the encoder value and its rate (ZoomRate).
 
 Writes benchmarks/results/zoom_model.txt (and prints it). Usage:
     ros2_ws/venv/bin/python benchmarks/zoom_model.py [--clean-bag BAG] [--distorted-bag BAG]
-        [--frames 300] [--time-offset SECONDS] [--repeat N] [--work DIR]
-The full output of the first run of each bag is printed; with --repeat N the headline figures of all N
-runs (the live pipeline is timing dependent) follow as min / median / max.
+        [--frames 300] [--time-offsets lag,0] [--repeat N] [--only clean|distorted] [--work DIR]
+The full output of the first run of each bag and offset is printed; with --repeat N the headline figures
+of all N runs (the live pipeline is timing dependent) follow as min / median / max.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ import yaml
 from ptz_selfcal.core.distortion import max_distortion_difference
 from ptz_selfcal.core.encoders import EncoderConfig, EncoderInterpolator
 from ptz_selfcal.core.render import ZoomEncoder
-from ptz_selfcal.core.zoom_model import ZoomModel
+from ptz_selfcal.core.zoom_model import ZoomModel, ZoomRate
 from ptz_selfcal.tools.bagio import BagReader, deserialize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,11 +127,17 @@ def model_figures(
     """The saved model's prediction from each frame's zoom encoder value against the truth, and the
     true lens law at that same value (what the encoder value attached to the frame allows at best)."""
     f_err, pp_err, d_err, z_in, within, law_err, out_of_range = [], [], [], [], [], [], 0
+    rates = ZoomRate()
     for fc in frames:
         g = truth.get(stamp_ns(fc.header.stamp))
-        if g is None or not fc.encoders.valid:
+        if not fc.encoders.valid:
             continue
-        pred = model.predict(float(fc.encoders.zoom))
+        # the encoder's rate, as the calibrator computes it: the model's learned lag turns it into a shift
+        zoom = float(fc.encoders.zoom)
+        rate = rates.update(stamp_ns(fc.header.stamp) * 1e-9, zoom)
+        if g is None:
+            continue
+        pred = model.predict(zoom, rate)
         if not pred.in_range:
             out_of_range += 1
             continue
@@ -226,7 +235,8 @@ def one_bag(
     lines.append(
         f"   saved model: {model.sample_count} samples in {model.bin_count} bins, visited encoder range "
         f"[{lo:.0f}, {hi:.0f}] (f_true {law.focal(lo):.0f} .. {law.focal(hi):.0f} px); "
-        f"{fig['n']} frames inside it, {fig['out_of_range']} outside"
+        f"{fig['n']} frames inside it, {fig['out_of_range']} outside; learned encoder lag "
+        f"{1e3 * model.lag:.1f} ms"
     )
     if fig["n"]:
         f, pp, d = fig["f"], fig["pp"], fig["dist"]
@@ -323,7 +333,10 @@ def main() -> int:
     parser.add_argument("--distorted-bag", type=Path, help="existing synth bag made with --distortion 0.12")
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument(
-        "--time-offset", type=float, help="frame_ingest encoder_time_offset, s (default: -lag of the bag)"
+        "--time-offsets",
+        default="lag,0",
+        help="frame_ingest encoder_time_offset values, s, comma separated; 'lag' = -lag of the bag (default "
+        "'lag,0': configured, and left at 0 for the model to learn the lag)",
     )
     parser.add_argument("--only", choices=("clean", "distorted"), help="one bag only")
     parser.add_argument(
@@ -348,26 +361,34 @@ def main() -> int:
             continue
         if bag is None:
             bag = synth(work / f"{name}_bag", args.frames, distortion)
-        runs: list[dict[str, float]] = []
-        for r in range(max(args.repeat, 1)):
-            runs.append({})
-            text = one_bag(name, bag, distortion > 0.0, args.time_offset, work / f"{name}_{r}", runs[-1])
-            lines += text if r == 0 else []
-        if len(runs) > 1:
-            lines.append(
-                f"   over {len(runs)} runs of the above (% focal error; min / median / max, each run):"
-            )
-            for figure in runs[0]:
-                v = np.array([run.get(figure, math.nan) for run in runs])
-                lines.append(
-                    f"     {figure:<38} {np.nanmin(v):.3f} / {np.nanmedian(v):.3f} / {np.nanmax(v):.3f}   "
-                    + " ".join(f"{x:.3f}" for x in v)
-                )
+        for offset_text in args.time_offsets.split(","):
+            offset = None if offset_text.strip() == "lag" else float(offset_text)
+            runs: list[dict[str, float]] = []
+            for r in range(max(args.repeat, 1)):
+                runs.append({})
+                sub = work / f"{name}_{offset_text.strip()}_{r}"
+                text = one_bag(name, bag, distortion > 0.0, offset, sub, runs[-1])
+                lines += text if r == 0 else []
+            lines += spread(runs)
     text = "\n".join(lines) + "\n"
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     return 0
+
+
+def spread(runs: list[dict[str, float]]) -> list[str]:
+    """The headline figures of repeated runs: min / median / max and each run."""
+    if len(runs) < 2:
+        return []
+    lines = [f"   over {len(runs)} runs of the above (% focal error; min / median / max, each run):"]
+    for figure in runs[0]:
+        v = np.array([run.get(figure, math.nan) for run in runs])
+        lines.append(
+            f"     {figure:<38} {np.nanmin(v):.3f} / {np.nanmedian(v):.3f} / {np.nanmax(v):.3f}   "
+            + " ".join(f"{x:.3f}" for x in v)
+        )
+    return lines
 
 
 if __name__ == "__main__":

@@ -479,3 +479,53 @@ def test_old_calibrations_merge_with_their_offsets_bounded_memory():
     grid = np.linspace(0.0, 900.0, 91)
     err = np.abs([model.predict(z).K[0, 0] / float(f_true(z)) - 1.0 for z in grid])
     assert err.max() < 4e-3
+
+
+def test_encoder_lag_is_learned_from_zooming_in_and_out():
+    """The encoder reads the zoom of 40 ms earlier: zooming in, f is longer than the reading says,
+    zooming out shorter. The model learns the lag that joins both branches and predicts from the
+    reading and its rate; without it the same samples leave errors of the zoom speed times the lag."""
+    lag, period = 0.04, 10.0
+
+    def zoom_true(t):
+        return 500.0 * (1.0 - np.cos(2.0 * np.pi * t / period))
+
+    def reading(t):  # encoder value and its rate (counts / s) at image time t
+        return zoom_true(t - lag), 500.0 * 2.0 * np.pi / period * np.sin(2.0 * np.pi * (t - lag) / period)
+
+    t_key = np.linspace(0.2, 9.8, 30)
+    z_enc, rate = reading(t_key)
+    samples = {
+        k: (z_enc[k], float(f_true(zoom_true(t_key[k]))), 640.0, 360.0, 0.0, 0.0, 0.002**-2, rate[k])
+        for k in range(len(t_key))
+    }
+    model, plain = ZoomModel(), ZoomModel(estimate_lag=False)
+    model.set_live(samples)
+    plain.set_live(samples)
+    assert model.lag == pytest.approx(lag, abs=0.005) and plain.lag == 0.0
+    t = np.linspace(0.5, 9.5, 200)
+    z, r = reading(t)
+    truth = f_true(zoom_true(t))
+    err = np.abs([model.predict(a, b).K[0, 0] for a, b in zip(z, r)] / truth - 1.0)
+    err_plain = np.abs([plain.predict(a, b).K[0, 0] for a, b in zip(z, r)] / truth - 1.0)
+    assert err.max() < 2e-3 and err_plain.max() > 4e-3
+    again = ZoomModel.from_dict(yaml.safe_load(yaml.safe_dump(model.to_dict())))
+    assert again.lag == model.lag
+    assert again.predict(z[50], r[50]).K[0, 0] == pytest.approx(model.predict(z[50], r[50]).K[0, 0], rel=1e-9)
+    # zooming one way only: no lag is claimed
+    one_way = ZoomModel()
+    one_way.set_live({k: v for k, v in samples.items() if rate[k] > 0})
+    assert one_way.lag == 0.0
+
+
+def test_zoom_rate_from_frame_encoder_values():
+    rates = zm.ZoomRate()
+    t = np.arange(0.0, 1.0, 1.0 / 30.0)
+    z = 100.0 + 600.0 * t
+    z[10] = z[9]  # an encoder value held for one frame
+    out = [rates.update(a, b) for a, b in zip(t, z)]
+    assert out[0] == 0.0 and out[1] == pytest.approx(600.0)
+    assert np.all(np.abs(np.array(out[15:]) - 600.0) < 1e-6)  # a straight line once the glitch is out
+    assert min(out[9:15]) > 450.0 and max(out[9:15]) < 750.0  # smoothed (a difference gives 0, 1200)
+    assert rates.update(1.05, float("nan")) == 0.0
+    assert rates.update(3.0, 900.0) == 0.0  # after a gap nothing is known

@@ -67,7 +67,7 @@ from ptz_selfcal.core.intrinsics import (
     image_centre,
 )
 from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
-from ptz_selfcal.core.zoom_model import ZoomModel, ZoomModelError
+from ptz_selfcal.core.zoom_model import ZoomModel, ZoomModelError, ZoomRate
 
 Array = NDArray[np.float64]
 
@@ -579,6 +579,9 @@ class CalibratorSession:
         self.last_good: FrameOutput | None = None
         self.zoom_model = ZoomModel()
         self._zoom_ready = False
+        self._zoom_rates = ZoomRate()
+        self._zoom_rate = 0.0  # zoom encoder counts / s at the current frame (0 = unknown)
+        self._keyframe_rate: dict[int, float] = {}  # keyframe -> zoom rate (the model learns the lag)
         self._dirty = False
         self._frame_times: deque[float] = deque(maxlen=2000)
         self._solve_times: deque[float] = deque(maxlen=200)
@@ -590,6 +593,7 @@ class CalibratorSession:
         """The calibration of one frame; O(1), never solves."""
         start = time.perf_counter()
         self.counters["frames"] += 1
+        self._note_zoom_rate(frame)
         if frame.width > 0 and frame.height > 0 and self.image_size != (frame.width, frame.height):
             if self.image_size is not None:
                 self._warn(f"image size changed from {self.image_size} to {(frame.width, frame.height)}")
@@ -876,12 +880,22 @@ class CalibratorSession:
         return self._new_calibrator()
 
     # ---- zoom model ------------------------------------------------------------------------------
+    def _note_zoom_rate(self, frame: FrameInput) -> None:
+        """Zoom encoder rate at this frame, remembered for keyframes: with it the zoom model learns
+        the encoder's lag (ZoomModel.set_live) and predicts through it."""
+        rate = self._zoom_rates.update(float(frame.stamp), float(frame.zoom))
+        self._zoom_rate = rate
+        if frame.tracking_state == "NEW_KEYFRAME":
+            self._keyframe_rate[int(frame.keyframe_id)] = rate
+            if len(self._keyframe_rate) > 4096:
+                self._keyframe_rate.pop(next(iter(self._keyframe_rate)))
+
     def _predict_from_zoom(self, frame: FrameInput, status: str) -> FrameOutput | None:
         if not math.isfinite(frame.zoom) or not self._zoom_ready:
             return None
         with self._lock:
             try:
-                K, D, sigma_f, _ = self.zoom_model.predict(float(frame.zoom))
+                K, D, sigma_f, _ = self.zoom_model.predict(float(frame.zoom), self._zoom_rate)
             except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
                 self._warn(f"zoom model prediction failed: {exc}")
                 return None
@@ -1138,7 +1152,8 @@ class CalibratorSession:
             rel = rel if math.isfinite(rel) and rel > 0.0 else common
             weight = 1.0 / max(rel, 1e-4) ** 2 if math.isfinite(rel) and rel > 0.0 else 1.0
             k1, k2 = self._distortion_of(K)[:2]
-            live[kid] = (zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2, weight)
+            rate = self._keyframe_rate.get(kid, 0.0)
+            live[kid] = (zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2, weight, rate)
         self.zoom_model.set_live(live)
         new = set(live) - self._sampled_keyframes
         self._sampled_keyframes |= new

@@ -184,6 +184,33 @@ def _penalised_spline(
     return _SplineFit(BSpline(knots, c, degree, extrapolate=False), fitted, robust, cov, dof, offsets)
 
 
+class ZoomRate:
+    """Zoom encoder rate (counts / s) at each frame: the least-squares slope of the frame zoom values
+    of the last `window` seconds (at least 3; else the backward difference to the previous one within
+    `max_gap`), so a held or repeated encoder value does not spike it. 0 when unknown."""
+
+    def __init__(self, window: float = 0.15, max_gap: float = 0.5) -> None:
+        self.window = window
+        self.max_gap = max_gap
+        self._recent: list[tuple[float, float]] = []
+
+    def update(self, stamp: float, zoom: float) -> float:
+        """Add this frame's (stamp s, zoom) and return the rate at it (NaN zoom: 0, history kept)."""
+        if not (math.isfinite(stamp) and math.isfinite(zoom)):
+            return 0.0
+        recent = [p for p in self._recent if 0.0 < stamp - p[0] <= self.max_gap]
+        recent.append((float(stamp), float(zoom)))
+        self._recent = recent
+        if len(recent) < 2:
+            return 0.0
+        window = np.array([p for p in recent if stamp - p[0] <= self.window])
+        if len(window) < 3:
+            (t0, z0), (t1, z1) = recent[-2], recent[-1]
+            return (z1 - z0) / (t1 - t0)
+        t = window[:, 0] - window[:, 0].mean()
+        return float(np.dot(t, window[:, 1] - window[:, 1].mean()) / max(float(np.dot(t, t)), 1e-12))
+
+
 class ZoomModel:
     """Learned zoom -> (K, D) model with bounded memory (see module docstring)."""
 
@@ -196,6 +223,8 @@ class ZoomModel:
         max_live: int = 256,
         huber: float = 2.5,
         max_calibrations: int = 8,
+        estimate_lag: bool = True,
+        max_lag: float = 0.25,
     ) -> None:
         if max_bins < 4:
             raise ValueError("max_bins must be >= 4")
@@ -211,6 +240,10 @@ class ZoomModel:
         self.huber = huber
         self.max_calibrations = max_calibrations
         self.calibration = 0  # id of the running calibration: its samples share one scale error
+        self.estimate_lag = estimate_lag
+        self.max_lag = max_lag
+        self.lag = 0.0  # s: the lens is at zoom + lag * zoom_rate when the encoder reads zoom
+        self._live_rate: dict[Hashable, float] = {}  # keyframe -> zoom rate (encoder counts / s)
         self._bins: dict[tuple[int, int], Array] = {}  # (calibration, zoom bin) -> running sums
         self._live: dict[Hashable, Array] = {}  # keyframe -> one sample's row (see _row)
         self._zoom_limits: tuple[float, float] | None = None  # lowest and highest committed zoom
@@ -288,21 +321,77 @@ class ZoomModel:
         return True
 
     def set_live(self, samples: Mapping[Hashable, tuple[float, ...]]) -> int:
-        """Replace the live samples by `samples` (keyframe -> (zoom, f, cx, cy, k1, k2, weight)), the
-        latest estimates of the running calibration's keyframes. A live keyframe absent from `samples`
-        has left the calibration: its last estimate is committed. Returns how many are live."""
+        """Replace the live samples by `samples` (keyframe -> (zoom, f, cx, cy, k1, k2, weight[,
+        zoom_rate])), the latest estimates of the running calibration's keyframes; zoom_rate (encoder
+        counts per second at the keyframe, 0 if unknown) lets the model learn the encoder's lag. A live
+        keyframe absent from `samples` has left the calibration: its last estimate is committed.
+        Returns how many are live."""
         live: dict[Hashable, Array] = {}
+        rates: dict[Hashable, float] = {}
         for key, sample in samples.items():
-            row = self._row(*(float(v) for v in sample))
+            values = [float(v) for v in sample]
+            rate = values[7] if len(values) > 7 and math.isfinite(values[7]) else 0.0
+            values[0] += self.lag * rate
+            row = self._row(*values[:7])
             if row is not None:
-                live[key] = row
+                live[key], rates[key] = row, rate
         for key in [k for k in self._live if k not in live]:
             self._commit_row(self._live.pop(key))
+            self._live_rate.pop(key, None)
         while len(live) > self.max_live:  # bounded: the oldest entries are committed
-            self._commit_row(live.pop(next(iter(live))))
-        self._live = live
+            key = next(iter(live))
+            self._commit_row(live.pop(key))
+            rates.pop(key)
+        self._live, self._live_rate = live, rates
         self._fit = None
+        if self.estimate_lag:
+            self._estimate_lag()
         return len(live)
+
+    def _estimate_lag(self) -> None:
+        """Encoder lag from the live samples: a lens zoomed in and out reads f(zoom + lag * rate), two
+        branches that one curve of zoom + lag * rate joins. The lag minimising the weighted misfit of
+        the monotone spline is adopted when it explains the data significantly better than the current
+        one (F statistic > 10 for one extra parameter); committed samples keep the lag of their day."""
+        keys = list(self._live)
+        if len(keys) < 10:
+            return
+        rows = np.array([self._live[k] for k in keys])
+        rate = np.array([self._live_rate.get(k, 0.0) for k in keys])
+        moving = np.abs(rate) > 0.05 * max(float(np.abs(rate).max()), 1e-12)
+        if np.sum(moving & (rate > 0)) < 3 or np.sum(moving & (rate < 0)) < 3:
+            return  # the zoom went one way only: lag and curve are not separable
+        w = rows[:, 1]
+        z_raw = rows[:, 2] / w - self.lag * rate
+        y = rows[:, 3] / w
+        n_basis = min(self.max_basis, len(keys) - 3)
+
+        def misfit(tau: float) -> float:
+            z = z_raw + tau * rate
+            if z.max() - z.min() <= 0.0:
+                return math.inf
+            fit = _penalised_spline(z, y, w, n_basis, self.smoothing, monotone=True, huber=self.huber)
+            return float(np.sum(fit.robust_weights * w * (y - fit.fitted) ** 2))
+
+        grid = np.linspace(-self.max_lag, self.max_lag, 21)
+        costs = np.array([misfit(float(t)) for t in grid])
+        i = int(np.argmin(costs))
+        tau = float(grid[i])
+        if 0 < i < len(grid) - 1:  # parabola through the minimum and its neighbours
+            c0, c1, c2 = costs[i - 1 : i + 2]
+            denom = c0 - 2.0 * c1 + c2
+            if denom > 0.0:
+                tau += 0.5 * (c0 - c2) / denom * float(grid[1] - grid[0])
+        best, current = misfit(tau), misfit(self.lag)
+        dof = len(keys) - n_basis - 1
+        if dof > 0 and best > 0.0 and (current - best) / (best / dof) > 10.0:
+            self._set_lag(tau)
+
+    def _set_lag(self, lag: float) -> None:
+        for key, row in self._live.items():
+            row[2] += row[1] * (lag - self.lag) * self._live_rate.get(key, 0.0)
+        self.lag = float(lag)
+        self._fit = None
 
     def commit_live(self, keep: Iterable[Hashable] = ()) -> int:
         """Commit the live samples except those in `keep` (e.g. the calibration was reset or not
@@ -311,6 +400,7 @@ class ZoomModel:
         gone = [k for k in self._live if k not in keep]
         for key in gone:
             self._commit_row(self._live.pop(key))
+            self._live_rate.pop(key, None)
         self._fit = None
         return len(gone)
 
@@ -507,9 +597,12 @@ class ZoomModel:
             value += fit.end_slopes[0] * (zoom - zc) if zoom < zc else fit.end_slopes[1] * (zoom - zc)
         return value
 
-    def predict_parameters(self, zoom: float) -> dict[str, float]:
-        """f, cx, cy, k1, k2 and their 1-sigma (sigma_f in pixels), plus in_range."""
+    def predict_parameters(self, zoom: float, zoom_rate: float = 0.0) -> dict[str, float]:
+        """f, cx, cy, k1, k2 and their 1-sigma (sigma_f in pixels), plus in_range, at an encoder value
+        (and its rate of change in counts / s, which the learned encoder lag turns into a zoom shift)."""
         fit = self._fitted()
+        if math.isfinite(zoom_rate):
+            zoom = zoom + self.lag * zoom_rate
         out = {name: self._evaluate(fit, name, zoom) for name in QUANTITIES}
         out["f"] = math.exp(out.pop("log_f"))
         zc = min(max(zoom, fit.z_lo), fit.z_hi)
@@ -522,9 +615,10 @@ class ZoomModel:
         out["in_range"] = bool(lo <= zoom <= hi)
         return out
 
-    def predict(self, zoom: float) -> ZoomPrediction:
-        """K (square pixels, zero skew) and plumb_bob D at a zoom encoder value; ZoomModelError if empty."""
-        p = self.predict_parameters(zoom)
+    def predict(self, zoom: float, zoom_rate: float = 0.0) -> ZoomPrediction:
+        """K (square pixels, zero skew) and plumb_bob D at a zoom encoder value (and its rate, counts / s,
+        see predict_parameters); ZoomModelError if empty."""
+        p = self.predict_parameters(zoom, zoom_rate)
         K = intrinsic_matrix(p["f"], p["cx"], p["cy"])
         D = np.array([p["k1"], p["k2"], 0.0, 0.0, 0.0])
         return ZoomPrediction(K, D, float(p["sigma_f"]), bool(p["in_range"]))
@@ -536,7 +630,11 @@ class ZoomModel:
             for c, k in sorted(self._bins)
         ]
         live = [
-            {"key": k if isinstance(k, int | str) else str(k), **dict(zip(_SUM_FIELDS, map(float, row)))}
+            {
+                "key": k if isinstance(k, int | str) else str(k),
+                "rate": float(self._live_rate.get(k, 0.0)),
+                **dict(zip(_SUM_FIELDS, map(float, row))),
+            }
             for k, row in self._live.items()
         ]
         summary = []
@@ -556,6 +654,9 @@ class ZoomModel:
                 "huber": self.huber,
                 "max_calibrations": self.max_calibrations,
                 "calibration": self.calibration,  # the running calibration (its samples are the live ones)
+                "estimate_lag": self.estimate_lag,
+                "max_lag": self.max_lag,
+                "lag": self.lag,  # s, learned encoder lag (live samples' zoom includes lag * rate)
             },
             "zoom_limits": None if self._zoom_limits is None else [float(v) for v in self._zoom_limits],
             "bins": bins,
@@ -585,8 +686,13 @@ class ZoomModel:
                 max_live=int(settings.get("max_live", 256)),
                 huber=float(settings.get("huber", 2.5)),
                 max_calibrations=int(settings.get("max_calibrations", 8)),
+                estimate_lag=bool(settings.get("estimate_lag", True)),
+                max_lag=float(settings.get("max_lag", 0.25)),
             )
             model.calibration = int(settings.get("calibration", 0))
+            model.lag = float(settings.get("lag", 0.0))
+            if not (math.isfinite(model.lag) and abs(model.lag) <= max(model.max_lag, 0.0)):
+                raise ZoomModelError(f"invalid lag {model.lag}")
             for entry in bins:
                 row = np.array([float(entry[name]) for name in _SUM_FIELDS])
                 key = (int(entry.get("calibration", 0)), int(entry["key"]))
@@ -607,7 +713,10 @@ class ZoomModel:
                     or key in model._live
                 ):
                     raise ZoomModelError(f"invalid live sample {key!r}")
-                model._live[key] = row
+                rate = float(entry.get("rate", 0.0))
+                if not math.isfinite(rate):
+                    raise ZoomModelError(f"invalid live sample {key!r}")
+                model._live[key], model._live_rate[key] = row, rate
         except (KeyError, TypeError, ValueError) as exc:
             raise ZoomModelError(f"invalid zoom model file: {exc}") from exc
         limits = data.get("zoom_limits")
