@@ -21,6 +21,11 @@ a good K and D from the zoom encoder alone.
   levelled against each other where they overlap in zoom and a biased one cannot bend the curve where
   it alone has data. Beyond `max_calibrations` the oldest merges into the next (shifted by the
   difference of their offsets; bounded memory).
+- Encoder lag: a zoom encoder that reports late (or a wrong encoder_time_offset) reads the zoom of
+  `lag` seconds earlier, so zooming in and zooming out trace two curves (at 35 %/s a 40 ms lag is 1.4 %
+  in f). Keyframes carry their zoom rate (ZoomRate); the lag that joins both branches into one
+  monotone curve of zoom + lag * rate is adopted when it explains the live samples significantly
+  better (`estimate_lag`), and predictions take the frame's rate too.
 - Weights: a sample's weight is 1 / sigma^2 of its log f (relative focal sigma from the bundle
   adjustment's Jacobian); keyframes the adjustment pins down poorly count little.
 - zoom -> log f: a MONOTONE penalised cubic B-spline (non-decreasing coefficients give a non-decreasing
