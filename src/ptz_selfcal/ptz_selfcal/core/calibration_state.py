@@ -249,6 +249,15 @@ class KeyframeBundleSolver:
         keyframes: list[Keyframe],
         max_nfev: int,
     ) -> SelfCalibrationResult:
+        if self.lens is not None:
+            # the keyframes' homographies as the lens correction has them now (chained or provisional):
+            # the ones stored at arrival may come from an older correction, and the frames are
+            # corrected with the current one (a stale keyframe homography put its frames 1% off)
+            H = H.copy()
+            for i, kf in enumerate(keyframes, start=1):
+                H_now = self.lens.keyframe_homography(kf.keyframe_id)
+                if H_now is not None and np.all(np.isfinite(H_now)):
+                    kf.H = H[i] = H_now
         # LM on <= max_keyframes + 1 homographies takes milliseconds: the calibrator's time-derived
         # evaluation budget (which also counts the adjustment) would stop it short of convergence
         lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max(int(max_nfev), 100))

@@ -825,8 +825,16 @@ class SessionLensHook:
         return float(lens._kappa_for(snap, kid)[0]) * f * f
 
     def keyframe_homography(self, keyframe_id: int) -> Array | None:
-        """The corrected H reference -> keyframe (None: not chained)."""
-        return None if self.lens is None else self.lens.keyframe_homography(keyframe_id)
+        """The corrected H reference -> keyframe, chained or provisional (None: neither yet)."""
+        lens = self.lens
+        snap = None if lens is None else lens.snapshot
+        if lens is None or snap is None:
+            return None
+        H = snap.H.get(int(keyframe_id))
+        if H is None:
+            chained = lens._provisional_chain(snap, int(keyframe_id))
+            H = None if chained is None else normalise_homography(chained[0])
+        return H
 
     def distort(self, keyframe_id: int | None, pts: ArrayLike) -> Array:
         """Corrected pixels of a keyframe (None: the reference) back to raw ones with the model that
