@@ -512,6 +512,11 @@ def test_encoder_lag_is_learned_from_zooming_in_and_out():
     again = ZoomModel.from_dict(yaml.safe_load(yaml.safe_dump(model.to_dict())))
     assert again.lag == model.lag
     assert again.predict(z[50], r[50]).K[0, 0] == pytest.approx(model.predict(z[50], r[50]).K[0, 0], rel=1e-9)
+    # a restarted calibration refreshes the restored keyframes without knowing their rates (NaN):
+    # they keep the ones they were saved with (and the lag)
+    again.set_live({k: (*v[:7], float("nan")) for k, v in samples.items()})
+    assert [e["rate"] for e in again.to_dict()["live"]] == pytest.approx(list(rate))
+    assert again.lag == pytest.approx(lag, abs=0.005)
     # zooming one way only: no lag is claimed
     one_way = ZoomModel()
     one_way.set_live({k: v for k, v in samples.items() if rate[k] > 0})

@@ -1161,7 +1161,7 @@ class CalibratorSession:
             rel = rel if math.isfinite(rel) and rel > 0.0 else common
             weight = 1.0 / max(rel, 1e-4) ** 2 if math.isfinite(rel) and rel > 0.0 else 1.0
             k1, k2 = self._distortion_of(K)[:2]
-            rate = self._keyframe_rate.get(kid, 0.0)
+            rate = self._keyframe_rate.get(kid, math.nan)  # NaN: a restored keyframe keeps its own
             live[kid] = (zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2, weight, rate)
         self.zoom_model.set_live(live)
         new = set(live) - self._sampled_keyframes

@@ -328,14 +328,18 @@ class ZoomModel:
     def set_live(self, samples: Mapping[Hashable, tuple[float, ...]]) -> int:
         """Replace the live samples by `samples` (keyframe -> (zoom, f, cx, cy, k1, k2, weight[,
         zoom_rate])), the latest estimates of the running calibration's keyframes; zoom_rate (encoder
-        counts per second at the keyframe, 0 if unknown) lets the model learn the encoder's lag. A live
+        counts per second at the keyframe; NaN or absent: the rate the key already has, else 0) lets the
+        model learn the encoder's lag. A live
         keyframe absent from `samples` has left the calibration: its last estimate is committed.
         Returns how many are live."""
         live: dict[Hashable, Array] = {}
         rates: dict[Hashable, float] = {}
         for key, sample in samples.items():
             values = [float(v) for v in sample]
-            rate = values[7] if len(values) > 7 and math.isfinite(values[7]) else 0.0
+            # no rate (NaN or absent): the one this keyframe came with (e.g. restored from the file)
+            rate = (
+                values[7] if len(values) > 7 and math.isfinite(values[7]) else self._live_rate.get(key, 0.0)
+            )
             values[0] += self.lag * rate
             row = self._row(*values[:7])
             if row is not None:
