@@ -1,5 +1,6 @@
 """Tracking loss through the real graph (three node processes over DDS, rendered PTZ views with exact
-ground truth): black frames, heavy blur, a scene cut and a fast 90 degree preset move at full zoom.
+ground truth): black frames, heavy blur, a scene cut and a fast 90 degree preset move at full zoom, and
+a sharp preset recall panning 9 deg/frame while zooming 1x -> 2.5x over a repetitive facade and back.
 
 CameraInfo keeps coming for every frame (from the zoom model while lost), tracking relocalises when the
 view comes back, and the calibration after recovery is as good as before (focal error on the same views
@@ -14,6 +15,25 @@ import reliability_harness as rh
 ROS_DOMAIN_ID = 175
 W, H = 640, 360
 SLACK = 2e-4  # absolute slack on the focal error comparison (0.02 %, the per-frame noise of tracking)
+
+
+# First in the module: its graph runs before the shared one of loss_results starts (6 node processes
+# at once on 2 cores under load delayed a first CameraInfo past the lock-step timeout).
+def test_fast_zooming_preset_recall_does_not_corrupt_the_calibration(ros_env, start_process, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", "176")
+    env = {**ros_env, "ROS_DOMAIN_ID": "176"}
+    procs = rh.start_graph(start_process, env)
+    feeder = rh.Feeder("zoom_preset_feeder")
+    try:
+        feeder.wait_connected()
+        r = rh.zoom_preset_scenario(feeder, W, H)
+        assert all(p.alive() for p in procs.values())
+        # while moving: K from the zoom model or a good homography, never a wildly wrong one
+        assert max(r["moving_errors"]) < 0.05, [round(e, 3) for e in r["moving_errors"]]
+        assert set(r["after_statuses"][-16:]) <= rh.CALIBRATED, r["after_statuses"]
+        assert r["after"] <= 1.1 * r["before"] + SLACK, (r["before"], r["after"])
+    finally:
+        feeder.close()
 
 
 @pytest.fixture(scope="module")
@@ -91,28 +111,3 @@ def test_preset_move_predicted_from_zoom_then_relocalised_uncorrupted(loss_resul
     assert max(r["errors"]) < 0.05, r["errors"]
     assert r["recovery_frames"] is not None and r["recovery_frames"] <= 3, r["after_statuses"]
     assert r["after"] <= 1.1 * r["before"] + SLACK, (r["before"], r["after"])
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured 04:40 UTC (same figures in 2 runs): a sharp preset recall panning 9 deg/frame while "
-    "zooming 1x -> 2.5x is tracked with wrong homographies (frames published DEGENERATE_MOTION with 12-19 % "
-    "focal error instead of PREDICTED_FROM_ZOOM) and corrupts the calibration: on the same views after the "
-    "return the focal error is 38 % (0.007 % before), status DEGENERATE_MOTION. Tracker/calibrator: "
-    "homographies of a fast move must be refused (or keyframes from them kept out of the solve)",
-)
-def test_fast_zooming_preset_recall_does_not_corrupt_the_calibration(ros_env, start_process, monkeypatch):
-    monkeypatch.setenv("ROS_DOMAIN_ID", "176")
-    env = {**ros_env, "ROS_DOMAIN_ID": "176"}
-    procs = rh.start_graph(start_process, env)
-    feeder = rh.Feeder("zoom_preset_feeder")
-    try:
-        feeder.wait_connected()
-        r = rh.zoom_preset_scenario(feeder, W, H)
-        assert all(p.alive() for p in procs.values())
-        # while moving: K from the zoom model or a good homography, never a wildly wrong one
-        assert max(r["moving_errors"]) < 0.05, [round(e, 3) for e in r["moving_errors"]]
-        assert set(r["after_statuses"][-16:]) <= rh.CALIBRATED, r["after_statuses"]
-        assert r["after"] <= 1.1 * r["before"] + SLACK, (r["before"], r["after"])
-    finally:
-        feeder.close()
