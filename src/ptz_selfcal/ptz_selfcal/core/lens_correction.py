@@ -186,7 +186,7 @@ class LensCorrection:
         self.stats = LensCorrectionStats()
         # keyframe -> (parent, corrected link H parent -> keyframe, kappa, centre): a new keyframe's
         # first link corrected at once by `provisional_link` until the worker chains it
-        self._provisional: OrderedDict[int, tuple[int, Array, float, Array]] = OrderedDict()
+        self._provisional: OrderedDict[int, tuple[int, Array, float, Array, float]] = OrderedDict()
         # the joint adjustment's estimate (set_joint): per-keyframe kappa and the lam(f) curve, which
         # take precedence over the estimator's own
         self._joint_kappa: dict[int, float] = {}
@@ -360,12 +360,16 @@ class LensCorrection:
             kappa = snap.lam_at(f) / (f * f)
         return kappa, self._centre.get(kid, self.centre0)
 
-    def _carry(self, snap: LensSnapshot, kappa: float, kid: int, ratio: float) -> float:
-        """kappa of keyframe `kid` carried to a view zoomed by `ratio` (f_new / f_kid): the lam(f)
-        curve's relative change when it is fitted, else distortion shrinking as 1/f (kappa ~ 1/f)."""
+    def _carry(
+        self, snap: LensSnapshot, kappa: float, kid: int, ratio: float, f: float | None = None
+    ) -> float:
+        """kappa of keyframe `kid` (focal length f, default its known one) carried to a view zoomed by
+        `ratio` (f_new / f_kid): the lam(f) curve's relative change when it is fitted, else distortion
+        shrinking as 1/f (kappa ~ 1/f)."""
         if not (math.isfinite(ratio) and ratio > 0.0) or abs(ratio - 1.0) < 1e-4:
             return kappa
-        f = self._focal.get(kid, self.nominal_focal)
+        if f is None or not (math.isfinite(f) and f > 0.0):
+            f = self._focal.get(kid, self.nominal_focal)
         span = snap.curve.f_range
         if span is not None and span[1] > 1.05 * span[0]:  # a curve over focal lengths actually seen
             k0 = snap.lam_at(f) / (f * f)
@@ -514,25 +518,32 @@ class LensCorrection:
 
     def _provisional_chain(
         self, snap: LensSnapshot, kid: int, depth: int = 0
-    ) -> tuple[Array, float, Array] | None:
-        """(corrected H reference -> kid, kappa, centre) through provisional links down to a chained
-        keyframe; None when kid is chained itself or has no such path."""
+    ) -> tuple[Array, float, Array, float] | None:
+        """(corrected H reference -> kid, kappa, centre, focal length) through provisional links down
+        to a chained keyframe; None when kid is chained itself or has no such path."""
         prov = self._provisional.get(kid)
         if prov is None or kid in snap.H or depth > 16:
             return None
-        parent, H_link, kappa, c = prov
+        parent, H_link, kappa, c, f = prov
         if parent in snap.H:
-            return H_link @ snap.H[parent], kappa, c
+            return H_link @ snap.H[parent], kappa, c, f
         up = self._provisional_chain(snap, parent, depth + 1)
-        return None if up is None else (H_link @ up[0], kappa, c)
+        return None if up is None else (H_link @ up[0], kappa, c, f)
 
     def _from_base(
-        self, snap: LensSnapshot, H_raw: ArrayLike, base: int, H_base: Array, kappa: float, c: Array
+        self,
+        snap: LensSnapshot,
+        H_raw: ArrayLike,
+        base: int,
+        H_base: Array,
+        kappa: float,
+        c: Array,
+        f: float | None = None,
     ) -> Array:
         """Corrected H reference -> frame: the tracked base -> frame part refitted, then H_base."""
         H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[base])
         if kappa != 0.0:
-            kappa_j = self._carry(snap, kappa, base, zoom_ratio(H_local))
+            kappa_j = self._carry(snap, kappa, base, zoom_ratio(H_local), f)
             with contextlib.suppress(ValueError, np.linalg.LinAlgError):
                 H_local = undistorted_homography(
                     H_local, kappa, kappa_j, c, c, 1.0, 1.0, self.width, self.height, count=8
@@ -561,8 +572,9 @@ class LensCorrection:
         if len(a) != len(b) or len(a) < 12:
             return False
         kappa_p, c = self._kappa_for(snap, parent) if up is None else (up[1], up[2])
+        f_p = self._focal.get(parent, self.nominal_focal) if up is None else up[3]
         ratio = zoom_ratio(self._H_raw[kid] @ np.linalg.inv(self._H_raw[parent]))
-        kappa = self._carry(snap, kappa_p, parent, ratio)
+        kappa = self._carry(snap, kappa_p, parent, ratio, f_p)
         try:
             src = b if kappa_p == 0.0 else division_undistort(b, kappa_p, c, 1.0)
             dst = a if kappa == 0.0 else division_undistort(a, kappa, c, 1.0)
@@ -571,7 +583,8 @@ class LensCorrection:
             return False
         if not np.all(np.isfinite(H_link)):
             return False
-        self._provisional[kid] = (parent, H_link, kappa, c)
+        f = f_p * ratio if math.isfinite(ratio) and ratio > 0.0 else f_p
+        self._provisional[kid] = (parent, H_link, kappa, c, f)
         while len(self._provisional) > 64:
             self._provisional.popitem(last=False)
         return True
