@@ -218,8 +218,10 @@ def one_bag(
     t0 = time.monotonic()
     first = evaluate(bag, work / f"{name}_run1", params_file(work / f"{name}_1.yaml", offset, **calib))
     late = first["metrics"]["focal_error"]["after_warmup"]
+    valid = sum(bool(fc.encoders.valid) for fc in read_output(Path(first["output_bag"]))[0])
     lines.append(
-        f"   run 1 (learns, {time.monotonic() - t0:.0f} s, load {os.getloadavg()[0]:.1f}): per-frame focal "
+        f"   run 1 (learns, {time.monotonic() - t0:.0f} s, load {os.getloadavg()[0]:.1f}; frames with a "
+        f"valid encoder value from frame_ingest: {valid}/{first['frames']['input']}): per-frame focal "
         f"error after 10% median {100 * late['median']:.3f}%, p90 {100 * late['p90']:.3f}%; statuses "
         f"{ {k: v for k, v in first['status_counts'].items() if v} }"
     )
