@@ -247,7 +247,7 @@ def load_opencv_result(path: Path) -> tuple[opencv_peer.OpenCVResult, str]:
             data["indices"], data["K"], data["R"], meta["wall_time"], meta["cpu_time"], meta["ok"],
             meta["message"], meta["stage_times"],
         )  # fmt: skip
-    return res, f"measured {meta['measured']} (load {meta['load']:.1f}), reused"
+    return res, f"measured {meta['measured']} (load at start {meta['load']:.1f}), reused"
 
 
 # --------------------------------------------------------------------------------------------------

@@ -120,4 +120,4 @@ def test_opencv_cache_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose(back.K, K)
     np.testing.assert_allclose(back.R, R)
     assert (back.wall_time, back.cpu_time, back.ok, back.stage_times) == (12.5, 3.25, True, {"features": 1.0})
-    assert "load 4.2" in note and "reused" in note
+    assert "load at start 4.2" in note and "reused" in note
