@@ -299,6 +299,9 @@ class HomographyTrackerNode(Node):
             counters["track_ms_p95"] = f"{np.percentile(d, 95):.2f}"
             counters["track_ms_max"] = f"{d.max():.2f}"
         counters["keyframes"] = len(self._keyframe_stamps)
+        # matched on this side (what an output published now reaches), so a graph's readiness is observable
+        counters["homography_subscribers"] = self._pub.get_subscription_count()
+        counters["keyframes_subscribers"] = self._kf_pub.get_subscription_count()
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
         status.hardware_id = topics.CAMERA_FRAME_ID
