@@ -682,7 +682,10 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
     if lens is not None:
         rows[0].note += "; estimate_distortion: true"
     if not published:
-        rows[0].note += f" (published statuses {statuses})"
+        tracked: dict[str, int] = {}
+        for r in tracking.results:
+            tracked[str(r.state)] = tracked.get(str(r.state), 0) + 1
+        rows[0].note += f" (tracker states {tracked}; published statuses {statuses})"
     calibrator = session.calibrator
     if calibrator is not None and session.reference_id not in (None, ""):
         calibrator.reference_id = int(session.reference_id)  # the map the session calibrated last
