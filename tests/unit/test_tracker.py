@@ -10,7 +10,13 @@ import pytest
 
 from ptz_selfcal.core.features import robust_homography, usac_params
 from ptz_selfcal.core.geometry import apply_homography, homography_work_to_full, transfer_error
-from ptz_selfcal.core.tracker import HomographyTracker, TrackerConfig, TrackingState
+from ptz_selfcal.core.tracker import (
+    HomographyTracker,
+    TrackerConfig,
+    TrackingState,
+    map_from_bytes,
+    map_to_bytes,
+)
 
 PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
 SCALE = 0.5  # working / full resolution
@@ -300,3 +306,61 @@ def test_fast_zooming_preset_recall_on_a_repetitive_facade_gives_no_wrong_homogr
     assert max(errors) < 20.0, np.round(errors, 1)
     assert max(link_errors) < 8.0, np.round(link_errors, 1)
     assert max(errors[-16:]) < 1.0, np.round(errors[-16:], 2)
+
+
+def test_saved_map_restored_in_a_new_tracker_relocalises_with_the_same_reference_and_ids(texture):
+    """A restarted tracker (new process: a fresh HomographyTracker) loads the saved map and relocalises
+    its first frame against it: same reference, old keyframe ids kept, new ids after the saved ones, and
+    the homography to the reference as accurate as before the restart."""
+    Hs = pan_zoom_sequence(20, zoom_step=0.04)
+    frames = [view(texture, H) for H in Hs]
+    before = HomographyTracker()
+    results = run(before, frames)
+    assert sum(r.state == TrackingState.NEW_KEYFRAME for r in results) >= 3
+    blob = map_to_bytes(before.export_map(), extra={"note": "kept"})
+    data, extra = map_from_bytes(blob)
+    assert extra == {"note": "kept"}
+    after = HomographyTracker()
+    after.restore_map(data)
+    assert after.reference_id == 0 and after.frame_index == 19
+    saved = before.keyframes()
+    assert set(after.keyframes()) == set(saved)
+    for kid, H in saved.items():
+        np.testing.assert_array_equal(after.keyframes()[kid], H)
+    # the camera somewhere in the middle of the saved sweep, then moving on
+    sequence = [Hs[9], Hs[10], Hs[11]]
+    out = [after.track(view(texture, H), SCALE, stamp=1.0 + 0.04 * i) for i, H in enumerate(sequence)]
+    assert out[0].state == TrackingState.RELOCALISED and out[0].frame_index == 20 and out[0].keyframe_id == 20
+    assert out[0].links and {link.source_id for link in out[0].links} <= set(saved)
+    for r, H in zip(out, sequence):
+        assert r.reference_id == 0 and r.H_ref is not None
+        assert grid_error(r.H_ref, true_full(Hs[0], H)).max() < 0.3
+    assert out[1].state in (TrackingState.TRACKING, TrackingState.NEW_KEYFRAME)
+    assert set(saved) <= set(after.keyframes())
+
+
+def test_corrupt_or_inconsistent_map_is_refused_and_the_tracker_starts_fresh(texture):
+    frames = [view(texture, H) for H in pan_zoom_sequence(6)]
+    tracker = HomographyTracker()
+    run(tracker, frames)
+    blob = map_to_bytes(tracker.export_map())
+    for bad in (b"", b"not a map at all", blob[: len(blob) // 2], blob[:-10]):
+        with pytest.raises(ValueError):
+            map_from_bytes(bad)
+    data, _ = map_from_bytes(blob)
+    broken = {**data, "reference_id": 12345}  # the reference is not among the keyframes
+    fresh = HomographyTracker()
+    with pytest.raises(ValueError):
+        fresh.restore_map(broken)
+    with pytest.raises(ValueError):
+        fresh.restore_map({"keyframes": [{"id": 0}]})
+    assert fresh.export_map() is None and fresh.keyframes() == {}
+    result = fresh.track(frames[0], SCALE)
+    assert result.state == TrackingState.NEW_KEYFRAME and result.reference_id == 0
+    # a map of another working scale or image size cannot be used: a new map (ids go on)
+    other = HomographyTracker()
+    other.restore_map(data)
+    small = cv2.resize(frames[0], (320, 180), interpolation=cv2.INTER_AREA)
+    result = other.track(small, 0.25)
+    assert result.state == TrackingState.NEW_KEYFRAME and result.reference_id == data["frame_index"] + 1
+    assert HomographyTracker().export_map() is None

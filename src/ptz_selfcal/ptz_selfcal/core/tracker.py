@@ -13,15 +13,24 @@ descriptor re-matching as fallback); its reference -> keyframe homography goes t
 the fewest hops, so chained error stays bounded when the camera comes back. After a loss (black
 frame, cut, fast move) descriptor matching against the stored keyframes relocalises the camera.
 Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
+
+Persistence: export_map() gives the keyframe map as plain data (ids, reference, homographies, working
+images and corners; descriptors are recomputed from the images), map_to_bytes()/map_from_bytes() turn it
+into one .npz blob and back (no pickle) and restore_map() loads it: the tracker then starts lost and its
+first frame relocalises against the stored keyframes, so a restarted tracker keeps the same reference
+and keyframe ids (new ids continue after the stored ones).
 """
 
 from __future__ import annotations
 
+import io
+import json
 import logging
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
+from typing import Any
 
 import cv2
 import numpy as np
@@ -45,6 +54,9 @@ Array = NDArray[np.float64]
 Points = NDArray[np.float32]
 
 _LOG = logging.getLogger(__name__)
+
+MAP_FORMAT = "ptz_selfcal.tracker_map"
+MAP_VERSION = 1
 
 
 class TrackingState(StrEnum):
@@ -190,12 +202,80 @@ class HomographyTracker:
     def reference_id(self) -> int | None:
         return self._reference_id
 
+    @property
+    def frame_index(self) -> int:
+        """Index of the last frame tracked (-1 before the first); the next frame gets this + 1."""
+        return self._frame_index
+
+    def export_map(self) -> dict[str, Any] | None:
+        """The keyframe map as plain data for restore_map (None while there is no map).
+
+        Cheap (no copies: a keyframe's arrays are never modified once stored), so it can be taken on the
+        frame path and serialised (map_to_bytes) elsewhere."""
+        if self._reference_id is None or self._scale is None or self._keyframe_id not in self._keyframes:
+            return None
+        return {
+            "reference_id": self._reference_id,
+            "keyframe_id": self._keyframe_id,
+            "frame_index": self._frame_index,
+            "scale": self._scale,
+            "keyframes": [
+                {
+                    "id": kf.id,
+                    "stamp": kf.stamp,
+                    "H_ref": kf.H_ref,
+                    "depth": kf.depth,
+                    "image": kf.image,
+                    "corners": kf.corners,
+                }
+                for kf in self._keyframes.values()
+            ],
+        }
+
+    def restore_map(self, data: dict[str, Any]) -> None:
+        """Replace the map by an exported one (ValueError when it is inconsistent; the tracker is then
+        reset). The next frame is relocalised against the stored keyframes (same reference and keyframe
+        ids); frame ids continue after the stored frame index. Keyframes beyond max_keyframes are dropped
+        (the oldest; never the reference or the last tracked one)."""
+        self.reset()
+        try:
+            keyframes = OrderedDict()
+            shape = None
+            for item in data["keyframes"]:
+                image = np.ascontiguousarray(item["image"], np.uint8)
+                H_ref = np.asarray(item["H_ref"], np.float64).reshape(3, 3)
+                corners = np.asarray(item["corners"], np.float32).reshape(-1, 2)
+                shape = image.shape if shape is None else shape
+                if image.ndim != 2 or image.shape != shape or not np.all(np.isfinite(H_ref)):
+                    raise ValueError(f"keyframe {item['id']}: bad image or homography")
+                stamp = None if item["stamp"] is None else float(item["stamp"])
+                kid = int(item["id"])
+                keyframes[kid] = Keyframe(kid, stamp, image, H_ref, int(item["depth"]), corners, None)
+            reference_id, keyframe_id = int(data["reference_id"]), int(data["keyframe_id"])
+            frame_index, scale = int(data["frame_index"]), float(data["scale"])
+            if reference_id not in keyframes or keyframe_id not in keyframes:
+                raise ValueError("the reference or the last keyframe is not among the stored keyframes")
+            if not (0.0 < scale <= 1.0) or frame_index < max(keyframes):
+                raise ValueError(f"bad working scale {scale} or frame index {frame_index}")
+        except (KeyError, TypeError, IndexError) as exc:
+            raise ValueError(f"malformed tracker map: {type(exc).__name__}: {exc}") from exc
+        self._keyframes = keyframes
+        self._reference_id, self._keyframe_id = reference_id, keyframe_id
+        self._frame_index, self._scale = frame_index, scale
+        self._lost = True
+        self._prune()
+
+    def _map_shape(self) -> tuple[int, ...] | None:
+        kf = self._keyframes.get(self._reference_id) if self._reference_id is not None else None
+        return None if kf is None else kf.image.shape
+
     def track(self, image_work: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
         """Process one mono8 working-resolution frame; `scale` = working / full resolution."""
         image = np.ascontiguousarray(image_work, np.uint8)
         if image.ndim != 2:
             raise ValueError("the tracker expects a single-channel (mono8) image")
-        shape_changed = self._previous is not None and self._previous.shape != image.shape
+        shape = self._previous.shape if self._previous is not None else self._map_shape()
+        shape_changed = shape is not None and shape != image.shape
         if shape_changed or (self._scale is not None and abs(scale - self._scale) > 1e-12):
             _LOG.info("image size or working scale changed: new map")
             frame_index = self._frame_index
@@ -648,6 +728,70 @@ class HomographyTracker:
             keyframe_id=self._keyframe_id, reference_id=self._reference_id, inlier_count=0,
             match_count=match_count, rms_transfer_error=float("nan"),
         )  # fmt: skip
+
+
+def map_to_bytes(data: dict[str, Any], extra: dict[str, Any] | None = None) -> bytes:
+    """An exported map (HomographyTracker.export_map) as one compressed .npz blob: the metadata (and the
+    caller's JSON-serialisable `extra`) as JSON, the keyframes' arrays stacked. Loadable without pickle."""
+    keyframes = data["keyframes"]
+    meta = {key: data[key] for key in ("reference_id", "keyframe_id", "frame_index", "scale")}
+    meta.update(
+        format=MAP_FORMAT, version=MAP_VERSION, extra=extra or {},
+        ids=[int(kf["id"]) for kf in keyframes], depths=[int(kf["depth"]) for kf in keyframes],
+        stamps=[None if kf["stamp"] is None else float(kf["stamp"]) for kf in keyframes],
+        corner_counts=[len(kf["corners"]) for kf in keyframes],
+    )  # fmt: skip
+    buffer = io.BytesIO()
+    np.savez_compressed(
+        buffer,
+        meta=np.frombuffer(json.dumps(meta).encode(), np.uint8),
+        images=np.stack([kf["image"] for kf in keyframes]).astype(np.uint8),
+        H_ref=np.stack([kf["H_ref"] for kf in keyframes]).astype(np.float64),
+        corners=np.concatenate([np.asarray(kf["corners"], np.float32).reshape(-1, 2) for kf in keyframes]),
+    )
+    return buffer.getvalue()
+
+
+def map_from_bytes(blob: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(map for HomographyTracker.restore_map, extra) from map_to_bytes' blob; ValueError when it is not
+    one (truncated, corrupt, another format or version, inconsistent sizes)."""
+    try:
+        with np.load(io.BytesIO(blob), allow_pickle=False) as npz:
+            meta = json.loads(npz["meta"].tobytes().decode())
+            images, H_ref, corners = npz["images"], npz["H_ref"], npz["corners"]
+    except ValueError:
+        raise
+    except Exception as exc:  # zipfile.BadZipFile, EOFError, KeyError, UnicodeDecodeError, OSError
+        raise ValueError(f"not a tracker map file ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(meta, dict) or meta.get("format") != MAP_FORMAT or meta.get("version") != MAP_VERSION:
+        raise ValueError("not a tracker map file of this version")
+    try:
+        ids, counts = meta["ids"], meta["corner_counts"]
+        n = len(ids)
+        if not (images.ndim == 3 and len(images) == n and H_ref.shape == (n, 3, 3)):
+            raise ValueError("keyframe arrays do not match the keyframe list")
+        if len(counts) != n or len(meta["depths"]) != n or len(meta["stamps"]) != n:
+            raise ValueError("keyframe lists of different lengths")
+        if corners.ndim != 2 or corners.shape[1] != 2 or sum(counts) != len(corners):
+            raise ValueError("corner counts do not match the corners")
+        splits = np.split(corners, np.cumsum(counts)[:-1]) if n else []
+        keyframes = [
+            {
+                "id": ids[i],
+                "stamp": meta["stamps"][i],
+                "H_ref": H_ref[i],
+                "depth": meta["depths"][i],
+                "image": images[i],
+                "corners": splits[i],
+            }
+            for i in range(n)
+        ]
+        data = {key: meta[key] for key in ("reference_id", "keyframe_id", "frame_index", "scale")}
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"malformed tracker map metadata: {type(exc).__name__}: {exc}") from exc
+    data["keyframes"] = keyframes
+    extra = meta.get("extra") or {}
+    return data, extra if isinstance(extra, dict) else {}
 
 
 def _corners(shape: tuple[int, ...]) -> Array:
