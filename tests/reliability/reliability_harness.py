@@ -169,6 +169,7 @@ class Feeder:
         self.frames: dict[int, object] = {}  # stamp ns -> FrameCalibration
         self.homographies: dict[int, object] = {}
         self.diagnostics: dict[str, dict[str, str]] = {}  # node name -> last counters
+        self.diagnostics_arrival: dict[str, float] = {}  # node name -> monotonic arrival of the last ones
         self.sent: dict[int, float] = {}  # stamp ns -> monotonic send time
         self.info_sub = self.node.create_subscription(
             CameraInfo, topics.CAMERA_INFO, self._on_info, reliable_qos()
@@ -201,6 +202,7 @@ class Feeder:
             self.diagnostics[name]["_message"] = status.message
             level = status.level
             self.diagnostics[name]["_level"] = str(level[0] if isinstance(level, bytes) else level)
+            self.diagnostics_arrival[name] = time.monotonic()
 
     # -- spinning
     def spin(self, seconds: float, until: Callable[[], bool] | None = None) -> bool:
@@ -212,22 +214,43 @@ class Feeder:
         return until is None
 
     def wait_connected(self, timeout: float = 30.0, compressed: bool = False) -> None:
-        from ptz_selfcal import topics
-
+        """Wait until every hop of ingest -> tracker -> calibrator -> this feeder is matched on the side
+        that publishes. A subscription matched here, or one this node's graph shows, says nothing about
+        whether the remote writer has matched it yet (each participant discovers the other's endpoints
+        separately; under load seconds apart), and a reliable volatile writer drops what it publishes
+        before that for the late reader: frame 0 lost to the calibrator, or its CameraInfo to us. So the
+        nodes' own matched counts, from diagnostics sent after this call started, are waited for."""
         image_pub = self.compressed if compressed else self.raw
+        since = time.monotonic()
+        needed = {
+            "frame_ingest": {"frame_in_subscribers": 1},
+            # the calibrator's, and ours (which alone would release the tracker's held outputs)
+            "homography_tracker": {
+                "homography_subscribers": 1 + int(self.listens_to_homographies),
+                "keyframes_subscribers": 1,
+            },
+            "calibrator": {"camera_info_subscribers": 1, "frame_calibration_subscribers": 1},
+        }
+
+        def matched_remotely() -> bool:
+            return all(
+                self.diagnostics_arrival.get(node, -math.inf) > since
+                and all(self.counter(node, key, -1) >= n for key, n in counts.items())
+                for node, counts in needed.items()
+            )
+
         ok = self.spin(
             timeout,
             lambda: (
                 image_pub.get_subscription_count() > 0
                 and self.joints.get_subscription_count() > 0
-                and self.info_sub.get_publisher_count() > 0  # matched: the calibrator does not hold outputs
+                and self.info_sub.get_publisher_count() > 0
                 and self.frame_sub.get_publisher_count() > 0
-                and self.node.count_subscribers("/" + topics.HOMOGRAPHY) > int(self.listens_to_homographies)
-                and self.node.count_subscribers("/" + topics.FRAME_IN) > 0
+                and matched_remotely()
             ),
         )
-        assert ok, "the graph did not connect"
-        self.spin(0.5)
+        state = {node: {k: self.diagnostics.get(node, {}).get(k) for k in c} for node, c in needed.items()}
+        assert ok, f"the graph did not connect: {state}"
 
     # -- sending
     def send_encoders(

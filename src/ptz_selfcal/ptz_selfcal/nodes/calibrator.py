@@ -353,6 +353,9 @@ class CalibratorNode(Node):
             if lens is not None and lens.snapshot is not None:
                 counters["distortion_lam_at_reference"] = f"{lens.snapshot.lam_at(lens.nominal_focal):.5f}"
         counters["zoom_model_samples_total"] = s.zoom_model.sample_count
+        # matched on this side (what a CameraInfo published now reaches), so a graph's readiness is observable
+        counters["camera_info_subscribers"] = self._info_pub.get_subscription_count()
+        counters["frame_calibration_subscribers"] = self._frame_pub.get_subscription_count()
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
         status.hardware_id = topics.CAMERA_FRAME_ID

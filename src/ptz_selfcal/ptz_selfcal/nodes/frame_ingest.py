@@ -444,6 +444,8 @@ class FrameIngest(Node):
         counters["encoder_samples_accepted"] = self._encoders.samples_accepted
         counters["encoder_samples_rejected"] = sum(self._encoders.rejections.values())
         counters["pending_frames"] = len(self._pending)
+        # matched on this side (what a frame published now reaches), so a graph's readiness is observable
+        counters["frame_in_subscribers"] = self._pub.get_subscription_count()
         if self._decode_times:
             d = sorted(self._decode_times)
             counters["decode_ms_median"] = f"{1e3 * d[len(d) // 2]:.2f}"
