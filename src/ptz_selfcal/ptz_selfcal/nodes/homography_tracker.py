@@ -6,7 +6,15 @@ tracking is lost or the frame is unusable: then the state is TRACKING_LOST or TE
 identity and inlier_count 0. New keyframes (and relocalisations) publish their keyframe links as
 KeyframeMatches on topics.KEYFRAMES. reference_frame_id/reference_stamp name the reference keyframe's
 image (the map's origin: it changes when the tracker starts a new map). Tracker settings are the
-parameters `tracker.<field>` of core/tracker.TrackerConfig. Run:
+parameters `tracker.<field>` of core/tracker.TrackerConfig.
+
+State: with `state_dir` set, the keyframe map (core/tracker export_map, with the keyframes' header stamps)
+is saved atomically to state_dir/tracker_map.npz by a background thread whenever it changed (a new
+keyframe or relocalisation), at most once per `save_period`, and on shutdown. At start the saved map is
+loaded: the tracker begins lost and relocalises its first frames against the stored keyframes, so after a
+restart (kill -9, crash) it keeps the same reference (reference_frame_id/reference_stamp) and keyframe
+ids, and the calibrator continues its calibration. An unreadable or corrupt file: a warning, a new map.
+`ptz-selfcal launch` gives the tracker the calibrator's state_dir unless it has its own. Run:
     python -m ptz_selfcal.nodes.homography_tracker --ros-args -p tracker.max_features:=300
 """
 
@@ -17,9 +25,11 @@ import inspect
 import math
 import re
 import sys
+import threading
 import time
 import traceback
 from collections import Counter, deque
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,7 +38,15 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 
 from ptz_selfcal import topics
-from ptz_selfcal.core.tracker import HomographyTracker, TrackerConfig, TrackingState, TrackResult
+from ptz_selfcal.core.atomic_file import atomic_write_bytes, remove_stale_temporaries
+from ptz_selfcal.core.tracker import (
+    HomographyTracker,
+    TrackerConfig,
+    TrackingState,
+    TrackResult,
+    map_from_bytes,
+    map_to_bytes,
+)
 from ptz_selfcal.nodes.conversions import (
     ConfigError,
     FrameError,
@@ -66,6 +84,20 @@ PARAMS = [
         in_range(1, 100000),
     ),
     Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
+    Param(
+        "state_dir",
+        "",
+        "directory of the saved keyframe map (state_dir/tracker_map.npz), reloaded at start so that a "
+        "restarted tracker keeps its reference and keyframe ids ('' = no persistence; `ptz-selfcal launch` "
+        "passes the calibrator's state_dir when this is unset)",
+    ),
+    Param(
+        "save_period",
+        2.0,
+        "seconds at least between two saves of the keyframe map (saved when it changed, by a background "
+        "thread, and on shutdown)",
+        in_range(0.05, 86400.0),
+    ),
 ]
 
 _STATE = {
@@ -76,6 +108,8 @@ _STATE = {
     TrackingState.TEXTURELESS: HomographyStamped.TEXTURELESS,
 }
 _IDENTITY = np.eye(3).ravel()
+MAP_FILE = "tracker_map.npz"
+_MAP_STATES = (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)  # the states that change the map
 # TrackerConfig fields the node does not expose (frame_ingest chooses the working scale).
 _NOT_PARAMETERS = {"working_scale"}
 _FRACTIONS = {"ratio", "fraction", "overlap", "level", "confidence"}  # name words of (0, 1] values
@@ -165,10 +199,103 @@ class HomographyTrackerNode(Node):
         # (each rclpy wake-up ~0.6 ms of CPU, 3% of a core idle) and delays the frames queued behind it.
         self._flush_timer = self.create_timer(0.02, self._flush_held)
         self._flush_timer.cancel()
+        self._map_path = Path(p["state_dir"]) / MAP_FILE if p["state_dir"] else None
+        self._save_period = float(p["save_period"])
+        self._save_wake = threading.Condition()
+        self._save_pending: tuple[dict[str, Any], dict[str, Any]] | None = None
+        self._save_stop = False
+        self._saver: threading.Thread | None = None
+        if self._map_path is not None:
+            # the saver thread only updates these (a key added during the diagnostics' iteration would raise)
+            self._counts.update(map_saves=0, map_save_failures=0, map_save_ms_last=0)
+            remove_stale_temporaries(self._map_path.parent)  # of a save killed half-way
+            self._load_map(self._map_path)
+            self._saver = threading.Thread(target=self._save_loop, name="tracker_map_saver", daemon=True)
+            self._saver.start()
         self.get_logger().info(
             f"tracking {topics.FRAME_IN} -> {self._pub.topic_name} ({p['queue_policy']}); "
-            f"max_features={self._config.max_features}, max_keyframes={self._config.max_keyframes}"
+            f"max_features={self._config.max_features}, max_keyframes={self._config.max_keyframes}; "
+            f"state_dir {p['state_dir'] or '(none: no persistence)'}"
         )
+
+    # ------------------------------------------------------------------ keyframe map persistence
+    def _load_map(self, path: Path) -> None:
+        """Restore the saved map and its keyframes' stamps; any problem: a warning and a new map."""
+        try:
+            blob = path.read_bytes()
+        except FileNotFoundError:
+            self.get_logger().info(f"no saved tracker map at {path}: starting a new map")
+            return
+        except OSError as exc:
+            self.get_logger().warning(f"cannot read the saved tracker map {path} ({exc}): starting a new map")
+            return
+        try:
+            data, extra = map_from_bytes(blob)
+            self._tracker.restore_map(data)
+            stamps = {}
+            for key, (sec, nanosec, frame_id) in dict(extra.get("keyframe_stamps", {})).items():
+                stamps[int(key)] = (Time(sec=int(sec), nanosec=int(nanosec)), str(frame_id))
+            reference = stamps[self._tracker.reference_id]
+        except (ValueError, TypeError, KeyError) as exc:
+            self._tracker.reset()
+            self.get_logger().warning(
+                f"ignoring the saved tracker map {path} ({type(exc).__name__}: {exc}): starting a new map"
+            )
+            return
+        self._keyframe_stamps = stamps
+        self._reference = reference
+        self._last_frame_index = self._tracker.frame_index
+        self.get_logger().info(
+            f"restored the tracker map from {path}: {len(self._tracker.keyframes())} keyframes, reference "
+            f"{self._tracker.reference_id}; relocalising against it"
+        )
+
+    def _queue_map_save(self) -> None:
+        """Hand the current map (references, no copies) to the saver thread; O(keyframes)."""
+        data = self._tracker.export_map()
+        if data is None:
+            return
+        stamps = {}
+        for kf in data["keyframes"]:
+            stamp = self._keyframe_stamps.get(kf["id"])
+            if stamp is not None:
+                stamps[str(kf["id"])] = [int(stamp[0].sec), int(stamp[0].nanosec), stamp[1]]
+        with self._save_wake:
+            self._save_pending = (data, {"keyframe_stamps": stamps})
+            self._save_wake.notify()
+
+    def _save_loop(self) -> None:
+        """Saver thread: the newest queued map, at most once per save_period; the last one on close()."""
+        last = -math.inf
+        while True:
+            with self._save_wake:
+                self._save_wake.wait_for(lambda: self._save_pending is not None or self._save_stop)
+                if self._save_pending is None:
+                    return
+                delay = last + self._save_period - time.monotonic()
+                if delay > 0.0 and not self._save_stop:
+                    self._save_wake.wait_for(lambda: self._save_stop, timeout=delay)
+                item, self._save_pending = self._save_pending, None
+            start = time.monotonic()
+            try:
+                atomic_write_bytes(self._map_path, map_to_bytes(*item))
+                self._counts["map_saves"] += 1
+            except Exception as exc:  # a full disk must not stop the tracking
+                self._counts["map_save_failures"] += 1
+                if self._counts["map_save_failures"] == 1:
+                    self.get_logger().warning(f"saving the tracker map {self._map_path} failed: {exc}")
+            self._counts["map_save_ms_last"] = round(1e3 * (time.monotonic() - start))
+            last = time.monotonic()
+
+    def close(self) -> None:
+        """Save the map one last time and stop the saver (called by run_node on shutdown)."""
+        if self._saver is None:
+            return
+        self._queue_map_save()
+        with self._save_wake:
+            self._save_stop = True
+            self._save_wake.notify()
+        self._saver.join(timeout=30.0)
 
     def _warn_once(self, kind: str, message: str) -> None:
         self._warnings.warn_once(kind, f"{kind}: {message}")
@@ -194,6 +321,8 @@ class HomographyTrackerNode(Node):
             self._tracker.reset()
         self._durations.append(time.perf_counter() - start)
         self._publish(msg, result)
+        if self._saver is not None and result is not None and result.state in _MAP_STATES:
+            self._queue_map_save()
 
     def _publish(self, frame: IngestedFrame, result: TrackResult | None) -> None:
         out = HomographyStamped()

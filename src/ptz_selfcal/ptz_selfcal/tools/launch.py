@@ -17,7 +17,8 @@ environment already names a Fast DDS profile file.
 
 The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
 /ns/name, /**/name, /**) to {ros__parameters: {...}}. Plain node-name keys are rewritten to /**/name in a
-temporary copy so that they apply under any namespace.
+temporary copy so that they apply under any namespace. A homography_tracker without a state_dir of its
+own gets the calibrator's (same key prefix), so that a restarted tracker reloads its keyframe map.
 """
 
 from __future__ import annotations
@@ -133,9 +134,31 @@ def namespaced_params_file(data: dict[str, Any], directory: str) -> Path:
     for key, section in data.items():
         key = str(key)
         out[key if key.startswith("/") else f"/**/{key}"] = section
+    out = share_state_dir(out)
     path = Path(directory) / "params.yaml"
     path.write_text(yaml.safe_dump(out, sort_keys=False))
     return path
+
+
+def share_state_dir(data: dict[str, Any]) -> dict[str, Any]:
+    """A copy of the parameters in which each homography_tracker section (key with the same prefix as a
+    calibrator's) without its own state_dir gets the calibrator's non-empty one: the tracker saves its
+    keyframe map beside the calibration state, and a restarted tracker keeps the calibration's reference."""
+    out = dict(data)
+    for key, section in data.items():
+        key = str(key)
+        prefix, _, name = key.rpartition("/")
+        state_dir = (section.get("ros__parameters") or {}).get("state_dir") if name == "calibrator" else None
+        if not state_dir:
+            continue
+        tracker_key = (
+            f"{prefix}/homography_tracker" if prefix or key.startswith("/") else "homography_tracker"
+        )
+        tracker = dict(out.get(tracker_key) or {"ros__parameters": {}})
+        params = dict(tracker.get("ros__parameters") or {})
+        params.setdefault("state_dir", state_dir)
+        out[tracker_key] = {**tracker, "ros__parameters": params}
+    return out
 
 
 def check_remaps(remaps: Sequence[str]) -> list[str]:

@@ -1,0 +1,39 @@
+"""`ptz-selfcal launch` parameter preparation: the tracker shares the calibrator's state_dir."""
+
+from __future__ import annotations
+
+import yaml
+
+from ptz_selfcal.tools.launch import namespaced_params_file
+
+
+def _prepared(tmp_path, data):
+    return yaml.safe_load(namespaced_params_file(data, str(tmp_path)).read_text())
+
+
+def test_tracker_without_state_dir_gets_the_calibrators(tmp_path):
+    out = _prepared(
+        tmp_path,
+        {
+            "calibrator": {"ros__parameters": {"state_dir": "/var/lib/cam1"}},
+            "homography_tracker": {"ros__parameters": {"diagnostics_period": 0.25}},
+        },
+    )
+    assert out["/**/homography_tracker"]["ros__parameters"] == {
+        "diagnostics_period": 0.25,
+        "state_dir": "/var/lib/cam1",
+    }
+    assert out["/**/calibrator"]["ros__parameters"] == {"state_dir": "/var/lib/cam1"}
+    # no tracker section at all, under a namespace
+    out = _prepared(tmp_path, {"/cam2/calibrator": {"ros__parameters": {"state_dir": "/s"}}})
+    assert out["/cam2/homography_tracker"]["ros__parameters"] == {"state_dir": "/s"}
+
+
+def test_tracker_state_dir_of_its_own_or_no_calibrator_state_dir_is_left_alone(tmp_path):
+    own = {
+        "calibrator": {"ros__parameters": {"state_dir": "/a"}},
+        "homography_tracker": {"ros__parameters": {"state_dir": ""}},
+    }
+    assert _prepared(tmp_path, own)["/**/homography_tracker"]["ros__parameters"] == {"state_dir": ""}
+    none = {"calibrator": {"ros__parameters": {"state_dir": ""}}}
+    assert set(_prepared(tmp_path, none)) == {"/**/calibrator"}
