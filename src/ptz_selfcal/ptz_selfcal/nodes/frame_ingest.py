@@ -356,13 +356,17 @@ class FrameIngest(Node):
         # had no CPU never shrank, and every later frame waited (up to encoder_wait) for its encoders
         # behind it. So every encoder message already received is taken now.
         self._add_joints(msg)
+        self._drain_joints()
+        self._flush_pending()
+
+    def _drain_joints(self) -> None:
+        """Every encoder message already received, into the interpolator."""
         for _ in range(_MAX_DRAIN):
             more = _take(self._joint_sub)
             if more is None:
                 break
             self._counts["encoder_messages_drained"] += 1
             self._add_joints(more)
-        self._flush_pending()
 
     def _add_joints(self, msg: JointState) -> None:
         self._counts["encoder_messages"] += 1
@@ -402,9 +406,19 @@ class FrameIngest(Node):
                 return
             self._pending.popleft()
             self._note("dropped_no_subscriber", "frames dropped while nothing subscribes to frame_in")
+        drained = False
         while self._pending:
             item = self._pending[0]
             query = self._encoders.query(stamp_to_sec(item.header.stamp))
+            if query.status is QueryStatus.NOT_YET and self._wait > 0 and not drained:
+                # The executor runs a due timer before the subscriptions: after this process had no CPU
+                # for encoder_wait, the retry timer came first and gave up on frames whose encoder
+                # samples had arrived meanwhile (likely how a lock-step replay at load 11 left 13 of 48
+                # frames without encoders). A frame waits for its encoders to come, not for their
+                # callback to run.
+                self._drain_joints()
+                drained = True
+                query = self._encoders.query(stamp_to_sec(item.header.stamp))
             waiting = (
                 query.status is QueryStatus.NOT_YET
                 and self._wait > 0
