@@ -27,6 +27,7 @@ import io
 import json
 import logging
 import math
+import zlib
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -56,7 +57,7 @@ Points = NDArray[np.float32]
 _LOG = logging.getLogger(__name__)
 
 MAP_FORMAT = "ptz_selfcal.tracker_map"
-MAP_VERSION = 1
+MAP_VERSION = 2
 
 
 class TrackingState(StrEnum):
@@ -730,26 +731,62 @@ class HomographyTracker:
         )  # fmt: skip
 
 
-def map_to_bytes(data: dict[str, Any], extra: dict[str, Any] | None = None) -> bytes:
-    """An exported map (HomographyTracker.export_map) as one compressed .npz blob: the metadata (and the
-    caller's JSON-serialisable `extra`) as JSON, the keyframes' arrays stacked. Loadable without pickle."""
+def map_to_bytes(
+    data: dict[str, Any],
+    extra: dict[str, Any] | None = None,
+    cache: dict[tuple[int, int, tuple[int, ...]], bytes] | None = None,
+) -> bytes:
+    """An exported map (HomographyTracker.export_map) as one .npz blob: the metadata (and the caller's
+    JSON-serialisable `extra`) as JSON, the keyframe images as lossless PNG, the other arrays stacked.
+    Loadable without pickle. `cache` (kept by the caller between saves) holds the PNG of each keyframe
+    image (keyed by id and checksum): a keyframe is encoded once, not at every save; it is left holding
+    only the keyframes of this map (bounded)."""
     keyframes = data["keyframes"]
     meta = {key: data[key] for key in ("reference_id", "keyframe_id", "frame_index", "scale")}
+    encoded: dict[tuple[int, int, tuple[int, ...]], bytes] = {}
+    for kf in keyframes:
+        image = np.ascontiguousarray(kf["image"], np.uint8)
+        key = (int(kf["id"]), zlib.crc32(image), image.shape)
+        png = None if cache is None else cache.get(key)
+        if png is None:
+            ok, buffer = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            if not ok:
+                raise ValueError(f"keyframe {kf['id']}: the image cannot be encoded")
+            png = buffer.tobytes()
+        encoded[key] = png
+    if cache is not None:
+        cache.clear()
+        cache.update(encoded)
+    pngs = list(encoded.values())
     meta.update(
         format=MAP_FORMAT, version=MAP_VERSION, extra=extra or {},
         ids=[int(kf["id"]) for kf in keyframes], depths=[int(kf["depth"]) for kf in keyframes],
         stamps=[None if kf["stamp"] is None else float(kf["stamp"]) for kf in keyframes],
-        corner_counts=[len(kf["corners"]) for kf in keyframes],
+        corner_counts=[len(kf["corners"]) for kf in keyframes], png_sizes=[len(png) for png in pngs],
     )  # fmt: skip
-    buffer = io.BytesIO()
-    np.savez_compressed(
-        buffer,
+    out = io.BytesIO()
+    np.savez(
+        out,
         meta=np.frombuffer(json.dumps(meta).encode(), np.uint8),
-        images=np.stack([kf["image"] for kf in keyframes]).astype(np.uint8),
+        images_png=np.frombuffer(b"".join(pngs), np.uint8),
         H_ref=np.stack([kf["H_ref"] for kf in keyframes]).astype(np.float64),
         corners=np.concatenate([np.asarray(kf["corners"], np.float32).reshape(-1, 2) for kf in keyframes]),
     )
-    return buffer.getvalue()
+    return out.getvalue()
+
+
+def _decode_images(blob: NDArray[np.uint8], sizes: list[int]) -> NDArray[np.uint8]:
+    if blob.ndim != 1 or sum(sizes) != len(blob) or not sizes:
+        raise ValueError("image sizes do not match the image data")
+    images = []
+    for chunk in np.split(blob, np.cumsum(sizes)[:-1]):
+        image = cv2.imdecode(chunk, cv2.IMREAD_UNCHANGED)
+        if image is None or image.ndim != 2 or image.dtype != np.uint8:
+            raise ValueError("a keyframe image is not a mono8 PNG")
+        images.append(image)
+    if len({image.shape for image in images}) != 1:
+        raise ValueError("keyframe images of different sizes")
+    return np.stack(images)
 
 
 def map_from_bytes(blob: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -758,7 +795,7 @@ def map_from_bytes(blob: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
         with np.load(io.BytesIO(blob), allow_pickle=False) as npz:
             meta = json.loads(npz["meta"].tobytes().decode())
-            images, H_ref, corners = npz["images"], npz["H_ref"], npz["corners"]
+            images_png, H_ref, corners = npz["images_png"], npz["H_ref"], npz["corners"]
     except ValueError:
         raise
     except Exception as exc:  # zipfile.BadZipFile, EOFError, KeyError, UnicodeDecodeError, OSError
@@ -768,6 +805,7 @@ def map_from_bytes(blob: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
         ids, counts = meta["ids"], meta["corner_counts"]
         n = len(ids)
+        images = _decode_images(images_png, meta["png_sizes"])
         if not (images.ndim == 3 and len(images) == n and H_ref.shape == (n, 3, 3)):
             raise ValueError("keyframe arrays do not match the keyframe list")
         if len(counts) != n or len(meta["depths"]) != n or len(meta["stamps"]) != n:

@@ -205,6 +205,7 @@ class HomographyTrackerNode(Node):
         self._save_pending: tuple[dict[str, Any], dict[str, Any]] | None = None
         self._save_stop = False
         self._saver: threading.Thread | None = None
+        self._png_cache: dict[Any, bytes] = {}  # keyframe images encoded by earlier saves (saver thread)
         if self._map_path is not None:
             # the saver thread only updates these (a key added during the diagnostics' iteration would raise)
             self._counts.update(map_saves=0, map_save_failures=0, map_save_ms_last=0)
@@ -278,7 +279,7 @@ class HomographyTrackerNode(Node):
                 item, self._save_pending = self._save_pending, None
             start = time.monotonic()
             try:
-                atomic_write_bytes(self._map_path, map_to_bytes(*item))
+                atomic_write_bytes(self._map_path, map_to_bytes(*item, cache=self._png_cache))
                 self._counts["map_saves"] += 1
             except Exception as exc:  # a full disk must not stop the tracking
                 self._counts["map_save_failures"] += 1
