@@ -399,7 +399,14 @@ class LockStep:
             sent = [self.send(v, im, "settle") for v, im in zip(views, images)]
             if all(self.status(s) in CALIBRATED for s in sent):
                 return True
+            # Under load the re-optimisation lags the frames by an amount that depends on the machine:
+            # before the next pass, wait until it has taken in everything up to this pass's last frame.
+            self.feeder.spin(60.0, lambda last=sent[-1].stamp_ns: self.calibrator_caught_up(last))
         return False
+
+    def calibrator_caught_up(self, stamp_ns: int) -> bool:
+        d = self.feeder.diagnostics.get("calibrator", {})
+        return int(d.get("last_frame_stamp_ns", -1)) >= stamp_ns and d.get("reoptimise_pending") == "0"
 
     def status(self, sent: Sent) -> str:
         return STATUS_NAMES[self.feeder.frames[sent.stamp_ns].status]

@@ -184,6 +184,8 @@ class CalibratorNode(Node):
         self._last_save = time.monotonic()
         self._stop = threading.Event()
         self._wake = threading.Event()
+        self._worker_running = False
+        self._last_frame_stamp_ns = 0
 
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
@@ -206,6 +208,7 @@ class CalibratorNode(Node):
 
     def _on_homography(self, msg: HomographyStamped) -> None:
         self._counts["homographies_in"] += 1
+        self._last_frame_stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
         width, height = int(msg.image_width), int(msg.image_height)
         try:
             h = np.asarray(msg.h, dtype=float)
@@ -311,6 +314,7 @@ class CalibratorNode(Node):
             if self._stop.is_set():
                 break
             try:
+                self._worker_running = True
                 before = self._session.state
                 self._session.step(budget)
                 if self._lens is not None and self._lens.work(self._session):
@@ -329,6 +333,8 @@ class CalibratorNode(Node):
             except Exception as exc:  # the worker must survive anything
                 self._warn_once("worker_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
                 time.sleep(0.1)
+            finally:
+                self._worker_running = False
 
     def _save(self) -> None:
         try:
@@ -356,6 +362,12 @@ class CalibratorNode(Node):
         # matched on this side (what a CameraInfo published now reaches), so a graph's readiness is observable
         counters["camera_info_subscribers"] = self._info_pub.get_subscription_count()
         counters["frame_calibration_subscribers"] = self._frame_pub.get_subscription_count()
+        # whether the re-optimisation has taken in everything received up to the frame last_frame_stamp_ns
+        # (0: idle; under load it lags the frames, and a test can wait for it instead of guessing a time)
+        counters["last_frame_stamp_ns"] = self._last_frame_stamp_ns
+        counters["reoptimise_pending"] = (
+            len(s._pending) + len(s._pending_matches) + int(s._needs_refinement) + int(self._worker_running)
+        )
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
         status.hardware_id = topics.CAMERA_FRAME_ID
