@@ -86,11 +86,16 @@ class Harness:
         return False
 
     def wait_connected(self, timeout: float = 20.0) -> None:
+        # The calibrator's own matched counts: a publisher seen in this node's graph may not have
+        # matched our subscription yet, and would drop the first frame's outputs for it. Counts from
+        # before a restart do not count.
+        self.diagnostics.clear()
         ok = self.spin_until(
             lambda: (
                 self.pub.get_subscription_count() > 0
                 and self.kf_pub.get_subscription_count() > 0
-                and self.node.count_publishers(topics.CAMERA_INFO) > 0
+                and _diag_value(self.diagnostics, "camera_info_subscribers") >= 1
+                and _diag_value(self.diagnostics, "frame_calibration_subscribers") >= 1
             ),
             timeout,
         )
