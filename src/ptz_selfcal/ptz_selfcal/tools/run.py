@@ -282,6 +282,7 @@ class _Replay:
         self.encoder_topic: str | None = topics.bag_topic(topics.JOINT_STATES)
         self._lost_logged = 0
         self.diagnostics_seen: dict[str, float] = {}  # node name -> when its last diagnostics arrived
+        self.diagnostics_values: dict[str, dict[str, str]] = {}  # node name -> its last counters
 
     # ---------------------------------------------------------------- bag side
     def _messages(self) -> Iterator[BagMessage]:
@@ -324,6 +325,9 @@ class _Replay:
         now = time.monotonic()
         for status in array.status:
             self.diagnostics_seen[status.name.rsplit("/", 1)[-1]] = now
+            self.diagnostics_values[status.name.rsplit("/", 1)[-1]] = {
+                kv.key: kv.value for kv in status.values
+            }
 
     def _resolve(self, stamp: int) -> None:
         for k, item in enumerate(self.in_flight):
@@ -427,6 +431,25 @@ class _Replay:
                 for t in (topics.CAMERA_INFO, topics.FRAME_CALIBRATION, topics.HOMOGRAPHY)
             ),
         }
+        if self.args.calibrator_module == NODE_MODULES["calibrator"]:
+            # A subscription seen here says nothing about whether the remote writer has matched it yet
+            # (each side discovers the other separately), and a volatile writer drops for a reader it
+            # has not matched: the nodes' own matched counts (diagnostics) say when the first frame's
+            # outputs reach the next stage and the recorder.
+            needed = {
+                "frame_ingest": {"frame_in_subscribers": 2 if self.args.record_frames else 1},
+                "homography_tracker": {"homography_subscribers": 2, "keyframes_subscribers": 2},
+                "calibrator": {"camera_info_subscribers": 1, "frame_calibration_subscribers": 1},
+            }
+
+            def matched_by_the_nodes() -> bool:
+                return all(
+                    int(float(self.diagnostics_values.get(node, {}).get(key, -1))) >= n
+                    for node, counts in needed.items()
+                    for key, n in counts.items()
+                )
+
+            checks["outputs matched by the nodes (their diagnostics)"] = matched_by_the_nodes
         while True:
             self._check_supervisor()
             missing = [name for name, ok in checks.items() if not ok()]
