@@ -36,6 +36,23 @@ def test_time_offset_shifts_encoder_stamps_onto_the_image_clock():
     assert enc.query(0.1).pan == pytest.approx(0.1 * 0.15)
 
 
+def test_just_past_the_newest_sample_a_moving_joint_is_extrapolated_not_held():
+    # a zooming head sampled at 15 Hz: a frame 40 ms past the newest sample gets the zoom of its own time
+    enc = EncoderInterpolator(EncoderConfig(max_gap=0.5, max_hold=0.05))
+    feed(enc, [0.0, 1 / 15, 2 / 15], zoom=lambda t: 1000.0 + 3000.0 * t)
+    q = enc.query(2 / 15 + 0.04)
+    assert q.valid and q.zoom == pytest.approx(1000.0 + 3000.0 * (2 / 15 + 0.04))
+    # the last two samples too far apart to say how the joint moves: the newest value is held
+    enc = EncoderInterpolator(EncoderConfig(max_gap=0.5, max_hold=0.05))
+    feed(enc, [0.0, 1.0], zoom=lambda t: 1000.0 + 3000.0 * t)
+    assert enc.query(1.04).zoom == pytest.approx(4000.0)
+    # pan along the shorter arc across +-pi
+    enc = EncoderInterpolator()
+    feed(enc, [0.0, 0.1], pan=lambda t: math.pi - 0.05 + t)
+    pan = enc.query(0.14).pan
+    assert abs(math.remainder(pan - (math.pi + 0.09), 2 * math.pi)) < 1e-9
+
+
 def test_pan_interpolates_along_the_shorter_arc():
     enc = EncoderInterpolator()
     enc.add(0.0, {"pan": math.pi - 0.1, "tilt": 0.0, "zoom": 0.0})
@@ -72,7 +89,7 @@ def test_validity_states():
     feed(enc, [1.0, 1.2, 3.0, 3.1])
     assert enc.query(2.0).status is QueryStatus.GAP  # bracketed by samples 1.8 s apart
     assert enc.query(1.22).valid  # held: within max_hold of 1.2
-    assert enc.query(3.12).valid and enc.query(3.12).pan == pytest.approx(0.31)
+    assert enc.query(3.12).valid and enc.query(3.12).pan == pytest.approx(0.312)  # extrapolated
     assert enc.query(3.5).status is QueryStatus.NOT_YET
     assert enc.query(0.5).status is QueryStatus.TOO_OLD
     q = enc.query(3.5)

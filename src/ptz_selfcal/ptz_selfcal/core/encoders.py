@@ -7,7 +7,11 @@ and answers "what were pan, tilt and zoom at this image stamp?":
 
 - encoder time offset: a sample stamped t_e describes the head at image-clock time t_e + time_offset;
 - a query is VALID when, for every joint, samples bracket the stamp no more than `max_gap` apart (linear
-  interpolation; pan and tilt along the shorter arc), or a sample lies within `max_hold` of it;
+  interpolation; pan and tilt along the shorter arc), or a sample lies within `max_hold` of it (a stamp
+  just past the newest sample is extrapolated along the last two samples when they are no more than
+  `max_gap` apart: holding the newest value would give a zooming head's frames a zoom up to max_hold
+  stale, 1.9 % in f on the synth bags, while waiting for the next sample would add an encoder period of
+  latency to every frame);
 - otherwise the state says why (NO_DATA, NOT_YET = the stamp is newer than the newest sample, so waiting
   may help, GAP = the bracketing samples are too far apart, TOO_OLD = older than anything retained) and
   the values are NaN.
@@ -45,7 +49,7 @@ class EncoderConfig:
     angular: tuple[bool, bool, bool] = (True, True, False)  # interpolate along the shorter arc
     time_offset: float = 0.0  # seconds added to encoder stamps to put them on the image clock
     max_gap: float = 0.5  # seconds: bracketing samples further apart than this are not trusted
-    max_hold: float = 0.05  # seconds: a single sample this close to the stamp is used as is
+    max_hold: float = 0.05  # seconds: a sample this close to the stamp is used (see the module doc)
     max_future: float = 10.0  # seconds ahead of the reference time beyond which a sample is rejected
     max_samples: int = 2000  # per joint (bounded memory)
 
@@ -114,7 +118,7 @@ class _JointBuffer:
             return QueryStatus.VALID, self.values[i]
         if i == len(times):  # newer than every sample
             if t - times[-1] <= max_hold:
-                return QueryStatus.VALID, self.values[-1]
+                return QueryStatus.VALID, self._extrapolate(t, max_gap)
             return QueryStatus.NOT_YET, math.nan
         if i == 0:  # older than every sample
             if times[0] - t <= max_hold:
@@ -128,9 +132,20 @@ class _JointBuffer:
             if t1 - t <= max_hold:
                 return QueryStatus.VALID, v1
             return QueryStatus.GAP, math.nan
-        frac = (t - t0) / (t1 - t0)
+        return QueryStatus.VALID, self._along(t, i - 1)
+
+    def _along(self, t: float, i: int) -> float:
+        """The value at t on the line through samples i and i + 1 (pan/tilt along the shorter arc)."""
+        t0, t1 = self.times[i], self.times[i + 1]
+        v0, v1 = self.values[i], self.values[i + 1]
         delta = _wrap(v1 - v0) if self.angular else v1 - v0
-        return QueryStatus.VALID, v0 + frac * delta
+        return v0 + (t - t0) / (t1 - t0) * delta
+
+    def _extrapolate(self, t: float, max_gap: float) -> float:
+        """Past the newest sample: along the last two samples if they are close enough, else held."""
+        if len(self.times) >= 2 and self.times[-1] - self.times[-2] <= max_gap:
+            return self._along(t, len(self.times) - 2)
+        return self.values[-1]
 
 
 # Worst status first: the query reports the worst joint's status.
