@@ -95,9 +95,10 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
         if victim == "calibrator":
             assert f"restored calibration state from {state_dir}" in out, out
             assert "loaded zoom model from" in out, out
-        # No CameraInfo worse than before the kill, not even one frame. A restarted tracker starts a new
-        # map (new reference): the calibrator restarts its calibration on it and, until that converges,
-        # publishes INITIALISING frames with K from the restored zoom model, which must be as good.
+        # No CameraInfo worse than before the kill, not even one frame. A restarted tracker reloads its
+        # keyframe map (launch gives it the calibrator's state_dir) and relocalises with the same reference,
+        # so the calibrator keeps its calibration; had it to start a new map, the calibrator would restart
+        # on it and publish INITIALISING frames with K from the restored zoom model, which must be as good.
         assert not worse, (worse, statuses, f"median focal error before {r['before']}, after {r['after']}")
         if victim == "homography_tracker":
             assert set(statuses) <= rh.CALIBRATED | {"INITIALISING"}, statuses
