@@ -95,6 +95,8 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
         if victim == "calibrator":
             assert f"restored calibration state from {state_dir}" in out, out
             assert "loaded zoom model from" in out, out
+        if victim == "homography_tracker":  # the map it saved in the calibrator's state_dir (launch)
+            assert f"restored the tracker map from {state_dir}" in out, out
         # No CameraInfo worse than before the kill, not even one frame. A restarted tracker reloads its
         # keyframe map (launch gives it the calibrator's state_dir) and relocalises with the same reference,
         # so the calibrator keeps its calibration; had it to start a new map, the calibrator would restart
