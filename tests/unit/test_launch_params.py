@@ -37,3 +37,10 @@ def test_tracker_state_dir_of_its_own_or_no_calibrator_state_dir_is_left_alone(t
     assert _prepared(tmp_path, own)["/**/homography_tracker"]["ros__parameters"] == {"state_dir": ""}
     none = {"calibrator": {"ros__parameters": {"state_dir": ""}}}
     assert set(_prepared(tmp_path, none)) == {"/**/calibrator"}
+
+
+def test_no_shared_state_dir_when_the_calibrator_estimates_distortion(tmp_path):
+    # the lens correction is not persisted: a tracker keeping its reference would leave the restored
+    # calibration without corrected homographies, so the tracker starts a new map after a restart
+    data = {"calibrator": {"ros__parameters": {"state_dir": "/a", "estimate_distortion": True}}}
+    assert set(_prepared(tmp_path, data)) == {"/**/calibrator"}

@@ -262,6 +262,18 @@ def test_session_hook_corrects_keyframes_frames_and_matches(hold: bool) -> None:
     assert D[0] < -0.1
 
 
+def test_a_calibrated_session_never_gets_a_raw_homography_the_correction_cannot_reach() -> None:
+    # after a restart on a restored tracker map the calibration (corrected coordinates) is restored but
+    # the lens correction starts empty: the frame goes out without a homography (K from the zoom model)
+    hook = SessionLensHook(lambda width: F_WIDE, joint_bundle=False)
+    H_raw = tracked_H(3, 0, lam_issue)
+    out, state = hook.frame(H_raw, "TRACKING", 3, "ref", W, H_IMG, calibrated=True)
+    assert out is None and state == "TRACKING_LOST" and hook.uncorrectable_frames == 1
+    # before any calibration the raw homography still passes (the session initialises on it)
+    out, state = hook.frame(H_raw, "TRACKING", 3, "ref", W, H_IMG, calibrated=False)
+    assert np.allclose(out, H_raw) and state == "TRACKING" and hook.uncorrectable_frames == 1
+
+
 class _StubSolver:
     """What SessionLensHook uses of calibration_state.KeyframeBundleSolver in joint mode."""
 

@@ -682,6 +682,7 @@ class SessionLensHook:
         self._raw_matches: deque[tuple[int, int, Array, Array]] = deque(maxlen=resend)
         self._size: tuple[int, int] | None = None
         self.held_keyframes = 0
+        self.uncorrectable_frames = 0  # calibrated session, frame the lens correction cannot correct
 
     def _ensure(self, reference: str, width: int, height: int) -> LensCorrection | None:
         if width <= 0 or height <= 0:
@@ -697,8 +698,23 @@ class SessionLensHook:
         return self.lens
 
     def frame(
-        self, H: Array | None, state: str, keyframe_id: int, reference: str, width: int, height: int
+        self,
+        H: Array | None,
+        state: str,
+        keyframe_id: int,
+        reference: str,
+        width: int,
+        height: int,
+        calibrated: bool = False,
     ) -> tuple[Array | None, str]:
+        """The frame's homography on corrected coordinates, and its tracking state.
+
+        `calibrated`: the session already holds a calibration (on corrected coordinates) for this
+        reference. A raw homography must then never reach it (on the issue-6 lens that is a 40-60 %
+        focal error): a frame the correction cannot reach (its state is not persisted, so after a
+        restart on a restored tracker map it starts empty) goes out without a homography, K from the
+        zoom model.
+        """
         lens = self._ensure(reference, width, height)
         if lens is None or H is None or not np.all(np.isfinite(H)):
             return H, state
@@ -711,6 +727,9 @@ class SessionLensHook:
         corrected = lens.frame_homography(H, kid)
         if corrected is not None:
             return corrected, state
+        if calibrated:
+            self.uncorrectable_frames += 1
+            return None, "TRACKING_LOST"
         if self.hold_keyframes and state == "NEW_KEYFRAME" and kid != lens.reference_id:
             self.held_keyframes += 1
             return H, "TRACKING"

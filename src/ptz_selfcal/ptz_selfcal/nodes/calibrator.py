@@ -220,7 +220,10 @@ class CalibratorNode(Node):
             state = _TRACKING_STATE.get(msg.state, "TRACKING_LOST")
             if self._lens is not None and state in ("TRACKING", "NEW_KEYFRAME", "RELOCALISED"):
                 # distortion-corrected homography (keyframes held back until the first estimate)
-                H, state = self._lens.frame(H, state, int(msg.keyframe_id), reference, width, height)
+                calibrated = self._session.state in ("CALIBRATING", "CONVERGED")
+                H, state = self._lens.frame(
+                    H, state, int(msg.keyframe_id), reference, width, height, calibrated=calibrated
+                )
             frame = FrameInput(
                 stamp=stamp_to_sec(msg.header.stamp),
                 H=H,
@@ -355,6 +358,7 @@ class CalibratorNode(Node):
         counters["calibration_state"] = s.state
         if self._lens is not None:
             counters["distortion_held_keyframes"] = self._lens.held_keyframes
+            counters["distortion_uncorrectable_frames"] = self._lens.uncorrectable_frames
             lens = self._lens.lens
             if lens is not None and lens.snapshot is not None:
                 counters["distortion_lam_at_reference"] = f"{lens.snapshot.lam_at(lens.nominal_focal):.5f}"

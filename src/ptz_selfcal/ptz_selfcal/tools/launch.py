@@ -142,14 +142,19 @@ def namespaced_params_file(data: dict[str, Any], directory: str) -> Path:
 
 def share_state_dir(data: dict[str, Any]) -> dict[str, Any]:
     """A copy of the parameters in which each homography_tracker section (key with the same prefix as a
-    calibrator's) without its own state_dir gets the calibrator's non-empty one: the tracker saves its
-    keyframe map beside the calibration state, and a restarted tracker keeps the calibration's reference."""
+    calibrator's) without its own state_dir gets the calibrator's non-empty one (unless the calibrator
+    estimates distortion): the tracker saves its keyframe map beside the calibration state, and a
+    restarted tracker keeps the calibration's reference."""
     out = dict(data)
     for key, section in data.items():
         key = str(key)
         prefix, _, name = key.rpartition("/")
-        state_dir = (section.get("ros__parameters") or {}).get("state_dir") if name == "calibrator" else None
-        if not state_dir:
+        params = section.get("ros__parameters") or {}
+        state_dir = params.get("state_dir") if name == "calibrator" else None
+        # Not with estimate_distortion: the lens correction's state is not persisted, so a tracker that
+        # keeps its reference would leave the restored calibration without corrected homographies
+        # (K from the zoom model until a reset); a new map re-initialises both (zoom model meanwhile).
+        if not state_dir or params.get("estimate_distortion") is True:
             continue
         tracker_key = (
             f"{prefix}/homography_tracker" if prefix or key.startswith("/") else "homography_tracker"
