@@ -8,4 +8,6 @@ bash "$ws/bootstrap.sh"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-42}"
 cd "$root"
+# out/demo is this script's own output: a re-run replaces the previous run's (eval refuses to overwrite)
+rm -rf out/demo
 exec "$ws/venv/bin/ptz-selfcal" eval bags/demo --out-dir out/demo "$@"
