@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import struct
 import sys
 import tempfile
 import threading
@@ -37,15 +36,6 @@ ROOT = Path(__file__).resolve().parents[1]
 PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
 TARGET_P95_MS = 40.0
 NODES = ("frame_ingest", "homography_tracker", "calibrator")
-
-
-def header_stamp_ns(raw: bytes | memoryview) -> int | None:
-    """The header stamp of a CDR message whose first field is std_msgs/Header."""
-    if len(raw) < 12:
-        return None
-    fmt = "<iI" if raw[1] == 1 else ">iI"
-    sec, nanosec = struct.unpack_from(fmt, raw, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 def peak_rss_mb(pid: int) -> float:
@@ -138,7 +128,7 @@ def measure(
 
     from ptz_selfcal import topics
     from ptz_selfcal.nodes.runtime import reliable_qos
-    from ptz_selfcal.tools.bagio import msg_class
+    from ptz_selfcal.tools.bagio import header_stamp_ns, msg_class
     from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, prepare
 
     res = Result(policy, depth, nice=nice)

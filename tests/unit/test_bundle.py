@@ -77,19 +77,9 @@ def test_rotated_gauge_and_given_rays_are_accepted() -> None:
     assert np.abs(result.info["rays"][seen] - expected[seen]).max() < 1e-7
 
 
-def test_analytic_jacobians_match_finite_differences() -> None:
-    seq = paper_sequence("B", 0.5, seed=5, n_points=120)
-    model = IntrinsicsModel(
-        aspect=ParamMode.CONSTANT, skew=ParamMode.VARYING, principal_point=ParamMode.VARYING
-    )
-    obs, _ = bundle._prepare(seq.observations(), 30)
+def _assert_jacobians_match_finite_differences(state, obs, layout, params) -> None:
+    """Analytic camera Jacobian (columns `params`) and ray Jacobian against central differences."""
     n_rays = int(obs.ray_idx.max()) + 1
-    K, R = _perturbed_start(seq, seed=2, focal_scale=1.01)
-    values = bundle.values_from_matrices(K)
-    values[:, 2] = 1e-3 * np.arange(30)  # non-zero skew so its derivatives are exercised
-    values[:, 1] = 1.01
-    state = bundle._State(values, R, bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays))
-    layout = bundle._layout(model, 30, use_prior=False)
     _, Y = bundle._residuals(state, obs)
     J_cam, J_ray = bundle._jacobians(state, obs, Y, layout)  # (2, L, N) and (2, 2, N)
     eps = 1e-6
@@ -99,8 +89,7 @@ def test_analytic_jacobians_match_finite_differences() -> None:
         r_m, _ = bundle._residuals(bundle._apply_step(state, -d_cam, -d_ray, layout, 1.0), obs)
         return (r_p - r_m) / (2 * eps)
 
-    # Intrinsics (f, aspect, skew, pp) and rotations of several frames.
-    for p in (0, 7, 31, 60, 95, layout.n_params - 1):
+    for p in params:
         d = np.zeros(layout.n_params)
         d[p] = eps
         numeric = central_difference(d, np.zeros((n_rays, 2)))
@@ -114,6 +103,23 @@ def test_analytic_jacobians_match_finite_differences() -> None:
             numeric = central_difference(np.zeros(layout.n_params), d_ray)
             analytic = J_ray[:, c] * (obs.ray_idx == ray)
             np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
+
+
+def test_analytic_jacobians_match_finite_differences() -> None:
+    seq = paper_sequence("B", 0.5, seed=5, n_points=120)
+    model = IntrinsicsModel(
+        aspect=ParamMode.CONSTANT, skew=ParamMode.VARYING, principal_point=ParamMode.VARYING
+    )
+    obs, _ = bundle._prepare(seq.observations(), 30)
+    n_rays = int(obs.ray_idx.max()) + 1
+    K, R = _perturbed_start(seq, seed=2, focal_scale=1.01)
+    values = bundle.values_from_matrices(K)
+    values[:, 2] = 1e-3 * np.arange(30)  # non-zero skew so its derivatives are exercised
+    values[:, 1] = 1.01
+    state = bundle._State(values, R, bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays))
+    layout = bundle._layout(model, 30, use_prior=False)
+    # intrinsics (f, aspect, skew, pp) and rotations of several frames
+    _assert_jacobians_match_finite_differences(state, obs, layout, (0, 7, 31, 60, 95, layout.n_params - 1))
 
 
 def test_mle_beats_its_lm_start_within_statistical_bounds() -> None:
@@ -416,29 +422,8 @@ def test_distortion_jacobians_match_finite_differences(mode) -> None:
         lam = curve.lam(values[:, 0])
     st = bundle._State(values, R, X, lam, curve)
     layout = bundle._layout(model, n, use_prior=False, distortion=True, curve_size=0 if curve is None else 3)
-    _, Y = bundle._residuals(st, obs)
-    J_cam, J_ray = bundle._jacobians(st, obs, Y, layout)
-    eps = 1e-6
-
-    def central_difference(d_cam, d_ray):
-        r_p, _ = bundle._residuals(bundle._apply_step(st, d_cam, d_ray, layout, 1.0), obs)
-        r_m, _ = bundle._residuals(bundle._apply_step(st, -d_cam, -d_ray, layout, 1.0), obs)
-        return (r_p - r_m) / (2 * eps)
-
-    for p in range(layout.n_params):  # rotations, f, aspect, skew, pp and every lam (or the curve)
-        d = np.zeros(layout.n_params)
-        d[p] = eps
-        numeric = central_difference(d, np.zeros((n_rays, 2)))
-        hit = (layout.local[obs.frame_idx] == p).T.astype(float)
-        analytic = np.einsum("aln,ln->an", J_cam, hit)
-        np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
-    for ray in (0, n_rays // 2):
-        for c in range(2):
-            d_ray = np.zeros((n_rays, 2))
-            d_ray[ray, c] = eps
-            numeric = central_difference(np.zeros(layout.n_params), d_ray)
-            analytic = J_ray[:, c] * (obs.ray_idx == ray)
-            np.testing.assert_allclose(analytic, numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
+    # rotations, f, aspect, skew, pp and every lam (or the curve)
+    _assert_jacobians_match_finite_differences(st, obs, layout, range(layout.n_params))
 
 
 @pytest.mark.parametrize("mode", ["frame", "curve"])

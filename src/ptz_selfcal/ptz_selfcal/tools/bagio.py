@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -57,6 +58,15 @@ def serialize(msg: Any, msgtype: str) -> bytes:
 
 def deserialize(raw: bytes | memoryview, msgtype: str) -> Any:
     return typestore().deserialize_cdr(raw, msgtype)
+
+
+def header_stamp_ns(raw: bytes | memoryview) -> int | None:
+    """The header stamp of a CDR-serialised message whose first field is std_msgs/Header, without
+    deserialising the rest (None if too short)."""
+    if len(raw) < 12:
+        return None
+    sec, nanosec = struct.unpack_from("<iI" if raw[1] == 1 else ">iI", raw, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 @dataclass(frozen=True)

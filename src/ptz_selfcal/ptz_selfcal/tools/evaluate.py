@@ -29,7 +29,7 @@ from ptz_selfcal import topics
 from ptz_selfcal.core import metrics
 from ptz_selfcal.core.distortion import DIVISION, PLUMB_BOB
 from ptz_selfcal.core.geometry import matrix_from_quaternion
-from ptz_selfcal.tools.bagio import BagReader, deserialize
+from ptz_selfcal.tools.bagio import BagReader, deserialize, header_stamp_ns
 from ptz_selfcal.tools.cli import CliError
 from ptz_selfcal.tools.report import STATUS_NAMES, format_table, write_json, write_plots
 
@@ -59,16 +59,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------------------------------
 def _stamp_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def header_stamp_ns(raw: bytes) -> int | None:
-    """Header stamp of a CDR message starting with std_msgs/Header, without deserialising the rest."""
-    import struct
-
-    if len(raw) < 12:
-        return None
-    sec, nanosec = struct.unpack_from("<iI" if raw[1] == 1 else ">iI", raw, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 @dataclass

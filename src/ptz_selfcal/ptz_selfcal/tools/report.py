@@ -11,11 +11,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ptz_selfcal.core.atomic_file import atomic_write_text
 
 STATUS_NAMES = (
     "INITIALISING",
@@ -43,19 +44,9 @@ def _clean(value: Any) -> Any:
 
 
 def write_json(report: dict, path: str | os.PathLike[str]) -> Path:
-    """Write the report atomically (temp file + fsync + rename)."""
+    """Write the report atomically (core.atomic_file: temp file, fsync, rename)."""
     path = Path(path)
-    text = json.dumps(_clean(report), indent=2, sort_keys=False) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, json.dumps(_clean(report), indent=2, sort_keys=False) + "\n")
     return path
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import struct
 import sys
 import tempfile
 import threading
@@ -29,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ptz_selfcal import topics
-from ptz_selfcal.tools.bagio import BagError, BagMessage, BagReader, BagWriter, msg_class
+from ptz_selfcal.tools.bagio import BagError, BagMessage, BagReader, BagWriter, header_stamp_ns, msg_class
 from ptz_selfcal.tools.cli import CliError
 from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, prepare
 
@@ -82,15 +81,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--quiet", action="store_true", help="no node output, no progress lines (summary only)"
     )
     parser.add_argument("--calibrator-module", default=NODE_MODULES["calibrator"], help=argparse.SUPPRESS)
-
-
-def header_stamp_ns(raw: bytes | memoryview) -> int | None:
-    """The header stamp of a CDR-serialised message whose first field is std_msgs/Header."""
-    if len(raw) < 12:
-        return None
-    fmt = "<iI" if raw[1] == 1 else ">iI"
-    sec, nanosec = struct.unpack_from(fmt, raw, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 @dataclass
