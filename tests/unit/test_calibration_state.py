@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ptz_selfcal.core import calibration_state as cs
-from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation, rotation_angle
 from ptz_selfcal.core.incremental import image_motion
 
 WIDTH, HEIGHT = 1280, 720
@@ -256,3 +256,114 @@ def test_keyframes_of_a_fast_move_stay_out_of_the_solve_but_are_calibrated(gated
     session.step(5.0)
     ids = keyframe_ids(session)
     assert 2000 not in ids and 2001 in ids
+
+
+# ---------------------------------------------------------------------------------------------------------
+# A fixed lens (SessionConfig.focal_model = "constant"): one K for every image, a pan alone calibrates it
+def fixed_lens_config(**kwargs) -> cs.SessionConfig:
+    return cs.SessionConfig(nominal_hfov_deg=50.0, focal_model="constant", **kwargs)
+
+
+def test_fixed_lens_pan_only_converges_to_the_truth(tmp_path: Path) -> None:
+    """The pan of test_pan_only_is_degenerate (f constant, no tilt): with a zooming model it is
+    DEGENERATE_MOTION, with the fixed-lens model (square pixels, zero skew, section 6.1) it converges
+    to the exact f and principal point, and every frame gets that one K."""
+    K, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    session = cs.CalibratorSession(fixed_lens_config(), state_dir=tmp_path)
+    outs = feed(session, H, f, every=6)
+    statuses = [o.status for o in outs]
+    assert cs.DEGENERATE_MOTION not in statuses
+    assert statuses[-1] == cs.CONVERGED
+    converged = [o for o in outs if o.status == cs.CONVERGED]
+    for o in converged:
+        assert abs(o.K[1, 1] / 1000.0 - 1.0) < 1e-3 and np.hypot(*(o.K[:2, 2] - PP)) < 2.0
+        assert o.K[0, 0] == o.K[1, 1] and o.K[0, 1] == 0.0 and np.all(o.D == 0.0) and o.R is not None
+        assert o.sigma_f < 0.01 * o.K[1, 1]
+    ref = session.calibrator.reference_K
+    assert abs(ref[1, 1] / 1000.0 - 1.0) < 1e-3
+    # one K for every image (whatever its homography says), the orientation from its homography
+    for j in (13, 40, 57):
+        out = session.process(cs.FrameInput(9.0 + j, H[j], "TRACKING", WIDTH, HEIGHT, j - j % 6, "ref"))
+        assert np.array_equal(out.K, ref)
+        R_true = np.linalg.inv(K[j]) @ H[j] @ K[0]
+        R_true /= np.cbrt(np.linalg.det(R_true))
+        assert np.degrees(rotation_angle(out.R @ R_true.T)) < 0.05
+    # persisted and restored as a fixed lens
+    session.save()
+    restored = cs.CalibratorSession(fixed_lens_config(), state_dir=tmp_path)
+    assert not [m for m in restored.restore() if m.startswith("WARNING")]
+    out = restored.process(cs.FrameInput(9.0, H[40], "TRACKING", WIDTH, HEIGHT, 36, "ref"))
+    assert out.source == "calibration" and np.allclose(out.K, ref)
+
+
+def test_pan_only_with_a_zooming_model_says_why() -> None:
+    _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    outs = feed(session, H, f, every=6)
+    assert outs[-1].status == cs.DEGENERATE_MOTION and "single axis" in outs[-1].message
+
+
+def test_focal_model_is_validated() -> None:
+    with pytest.raises(ValueError, match="focal_model"):
+        cs.SessionConfig(focal_model="zooming")
+    assert cs.SessionConfig().intrinsics_model().focal.value == "varying"
+    assert fixed_lens_config().intrinsics_model().focal.value == "constant"
+
+
+def feed_distorted(session: cs.CalibratorSession, K: np.ndarray, H, lam: float, every: int = 6) -> list:
+    """feed() with the keyframe matches on DISTORTED pixels (division model about the principal point,
+    one coefficient: a fixed lens); the frames' homographies are the undistorted truth."""
+    from ptz_selfcal.core.distortion import division_distort, division_undistort
+
+    rng = np.random.default_rng(2)
+    f, pp = K[0][1, 1], K[0][:2, 2]
+    outs = []
+    for j in range(len(H)):
+        kf = j % every == 0
+        state = "NEW_KEYFRAME" if kf else "TRACKING"
+        outs.append(session.process(cs.FrameInput(j, H[j], state, WIDTH, HEIGHT, j - j % every, "ref")))
+        if kf and j >= every:
+            for b in (j - every, j - 2 * every):
+                if b < 0:
+                    continue
+                xa = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], (300, 2))
+                xb = apply_homography(H[b] @ np.linalg.inv(H[j]), division_undistort(xa, lam, pp, f))
+                xb = division_distort(xb, lam, pp, f)
+                ok = np.isfinite(xb).all(axis=1) & (xb >= 0).all(axis=1) & (xb < (WIDTH, HEIGHT)).all(axis=1)
+                session.add_keyframe_matches(j, b, xa[ok] + rng.normal(0, 0.1, (ok.sum(), 2)), xb[ok])
+        if kf:
+            session.step(5.0)
+    return outs
+
+
+def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
+    """A fixed lens with barrel distortion (6% corner shift) panning and tilting: with
+    estimate_distortion the session recovers f, the principal point and the one division coefficient
+    from the raw matches, and publishes D as its plumb_bob fit; without it f is biased."""
+    from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
+
+    K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
+    lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
+    session = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
+    outs = feed_distorted(session, K, H, lam)
+    assert outs[-1].status == cs.CONVERGED
+    ref = session.calibrator.reference_K
+    assert abs(ref[1, 1] / 1000.0 - 1.0) < 2e-3 and np.hypot(*(ref[:2, 2] - PP)) < 2.0
+    assert abs(session.solver.shared_lam / lam - 1.0) < 0.02
+    k1, k2 = division_to_plumb_bob(lam, K[0], WIDTH, HEIGHT)
+    D = outs[-1].D
+    assert abs(D[0] / k1 - 1.0) < 0.05 and np.all(D[2:] == 0.0), (D, k1, k2)
+    plain = cs.CalibratorSession(fixed_lens_config())
+    feed_distorted(plain, K, H, lam)
+    assert abs(plain.calibrator.reference_K[1, 1] / 1000.0 - 1.0) > 5e-3
+
+
+def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> None:
+    """CONVERGED needs sigma_f below converged_max_sigma_f: with an (impossibly) strict bound a stable
+    solution stays CALIBRATING and says why."""
+    _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    session = cs.CalibratorSession(fixed_lens_config(converged_max_sigma_f=1e-9))
+    outs = feed(session, H, f, every=6)
+    assert cs.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].status == cs.CALIBRATING and "1-sigma of f" in outs[-1].message
+    assert session.calibrator.state.value == cs.CONVERGED  # the solver itself is stable

@@ -18,11 +18,13 @@ so the principal point is also the distortion centre. In rotation-only data the 
 apart when they are estimated separately (a corrected homography's principal point follows the
 assumed centre); tied together and fitted to the raw points, the distortion pattern itself pins the
 centre (tests/unit/test_bundle.py, benchmarks/distortion.py). lam_i is either free per frame
-(distortion="frame") or on a curve of the focal length (distortion="curve", section 7.2's second
-option, eq. 35 with core/distortion_estimation.DistortionVsFocal's better-behaved form): the corner
-shift s = c0 + c1 u + c2 u^2, u = f_ref / f_i, lam_i = -s / ((1 + s) (D / f_i)^2), D the half-diagonal.
-Per-frame coefficients at long focal lengths trade off against the focal length (both act at second
-order over a narrow field of view); the curve keeps three unknowns for the whole zoom range.
+(distortion="frame"), one coefficient shared by every frame (distortion="shared": a fixed lens, whose
+distortion does not change between images) or on a curve of the focal length (distortion="curve",
+section 7.2's second option, eq. 35 with core/distortion_estimation.DistortionVsFocal's better-behaved
+form): the corner shift s = c0 + c1 u + c2 u^2, u = f_ref / f_i, lam_i = -s / ((1 + s) (D / f_i)^2),
+D the half-diagonal. Per-frame coefficients at long focal lengths trade off against the focal length
+(both act at second order over a narrow field of view); the curve keeps three unknowns for the whole
+zoom range.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.degeneracy import analyse_motion
+from ptz_selfcal.core.degeneracy import analyse_motion, single_axis_is_degenerate
 from ptz_selfcal.core.distortion import half_diagonal
 from ptz_selfcal.core.intrinsics import (
     ASPECT,
@@ -173,12 +175,17 @@ class _Layout:
 
 
 def _layout(
-    model: IntrinsicsModel, n_frames: int, use_prior: bool, distortion: bool = False, curve_size: int = 0
+    model: IntrinsicsModel,
+    n_frames: int,
+    use_prior: bool,
+    distortion: bool = False,
+    curve_size: int = 0,
+    shared: bool = False,
 ) -> _Layout:
     intr_index = parameter_index(model, n_frames)
     n_intr = parameter_count(model, n_frames)
     free = np.array([c for c, mode in enumerate(model.modes) if mode is not ParamMode.KNOWN], dtype=np.intp)
-    n_lam = curve_size if curve_size else (n_frames if distortion else 0)
+    n_lam = curve_size if curve_size else ((1 if shared else n_frames) if distortion else 0)
     P = n_intr + 3 * (n_frames - 1) + n_lam
     rot = np.full((n_frames, 3), P, dtype=np.intp)
     rot[1:] = n_intr + np.arange(3 * (n_frames - 1)).reshape(-1, 3)
@@ -188,8 +195,8 @@ def _layout(
     if curve_size:  # the curve's coefficients, shared by every frame: the last local columns
         curve_index = (first + np.arange(curve_size)).astype(np.intp)
         local = np.concatenate([local, np.repeat(curve_index[None], n_frames, axis=0)], axis=1)
-    elif distortion:  # one coefficient per frame, the last local column
-        lam_index = (first + np.arange(n_frames)).astype(np.intp)
+    elif distortion:  # one coefficient per frame (or one for all: a fixed lens), the last local column
+        lam_index = (first + (np.zeros(n_frames) if shared else np.arange(n_frames))).astype(np.intp)
         local = np.concatenate([local, lam_index[:, None]], axis=1)
     prior_index = np.zeros(0, dtype=np.intp)
     prior_axis = np.zeros(0, dtype=np.intp)
@@ -705,12 +712,13 @@ def bundle_adjust(
     few frames, e.g. keyframe pairs) or 'auto' (by a cost estimate); the result is the same.
     distortion: the observations are DISTORTED pixels; a division coefficient per frame about its
     principal point is estimated with everything else (module docstring): True or "frame", free per
-    frame; "curve", on the lam(f) curve of degree curve_degree. Starting from lam_init ((n,), default
-    0); the result's info carries "lam" (n,), "sigma_lam" (n,) and, for a curve,
+    frame; "curve", on the lam(f) curve of degree curve_degree; "shared", ONE coefficient for every
+    frame (a fixed lens: constant f, one distortion). Starting from lam_init ((n,), default 0; its mean
+    for "shared"); the result's info carries "lam" (n,), "sigma_lam" (n,) and, for a curve,
     "distortion_curve" (coefficients, f_ref, half-diagonal).
     """
-    if distortion not in (False, True, "frame", "curve"):
-        raise ValueError(f"distortion must be False, True, 'frame' or 'curve', not {distortion!r}")
+    if distortion not in (False, True, "frame", "curve", "shared"):
+        raise ValueError(f"distortion must be False, True, 'frame', 'curve' or 'shared', not {distortion!r}")
     K0 = np.asarray(K_init, dtype=float).reshape(-1, 3, 3)
     R_in = np.asarray(R_init, dtype=float).reshape(-1, 3, 3)
     n = len(K0)
@@ -738,6 +746,8 @@ def bundle_adjust(
         lam = np.zeros(n) if lam_init is None else np.asarray(lam_init, dtype=float).reshape(n).copy()
         if not np.all(np.isfinite(lam)):
             raise ValueError("lam_init must be finite")
+        if distortion == "shared":  # one lens for every frame: one coefficient, started at the mean
+            lam[:] = lam.mean()
     if rays_init is None:
         Kmat = matrices_from_values(values)
         X = initial_rays(obs if lam is None else _undistorted(obs, Kmat, lam), Kmat, R, n_rays)
@@ -757,12 +767,25 @@ def bundle_adjust(
         mean = np.asarray(pp_prior[0], dtype=float).reshape(2)
         sigma = np.asarray(pp_prior[1], dtype=float).reshape(2)
         prior = (mean, sigma, float(noise_sigma))
-    layout = _layout(model, n, prior is not None, bool(distortion), 0 if curve is None else curve_degree + 1)
+    layout = _layout(
+        model,
+        n,
+        prior is not None,
+        bool(distortion),
+        0 if curve is None else curve_degree + 1,
+        shared=distortion == "shared",
+    )
     result = _levenberg_marquardt(
         state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model, schur
     )
     if analyse:
-        result.motion = analyse_motion(result.R, result.K, image_size, sigma_f=result.sigma_f)
+        result.motion = analyse_motion(
+            result.R,
+            result.K,
+            image_size,
+            sigma_f=result.sigma_f,
+            single_axis_degenerate=single_axis_is_degenerate(model),
+        )
         if result.ok and not result.motion.well_posed:
             result.ok = False
             result.message = f"motion not well posed: {result.motion.status} ({result.motion.message})"

@@ -50,6 +50,8 @@ from numpy.typing import NDArray
 
 from ptz_selfcal.core.atomic_file import atomic_write_text, remove_stale_temporaries
 from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
+from ptz_selfcal.core.degeneracy import STATUS_NEAR_AMBIGUOUS
+from ptz_selfcal.core.distortion import division_to_plumb_bob
 from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
 from ptz_selfcal.core.incremental import (
     CalibrationState,
@@ -186,6 +188,34 @@ class SessionConfig:
     # homographies chain over small overlaps and drift, and real cameras blur them. Their frames are
     # still calibrated. (The CI synth bag's sweep moves up to ~11 % per frame.)
     max_keyframe_motion: float = 6.0
+    # "varying": a zooming camera, f per keyframe (pan-only motion is DEGENERATE_MOTION, section 6.1).
+    # "constant": a fixed lens, one f and one principal point for every image (square pixels, zero
+    # skew): a pan alone calibrates it (degeneracy.single_axis_is_degenerate); every frame has that K.
+    focal_model: str = "varying"
+    # Fixed lens only: ONE radial (division) coefficient about the principal point for every image,
+    # estimated with K in the keyframe bundle adjustment on the raw keyframe matches (bundle.py
+    # distortion="shared"). A zooming lens estimates distortion through core/lens_correction instead.
+    estimate_distortion: bool = False
+    # Fixed lens: CONVERGED (what a user may take as the calibration) also needs the focal length's
+    # 1-sigma below this fraction; above it a stable solution is still CALIBRATING (DESIGN.md 5.5:
+    # uncertainty reported instead of confident nonsense). A hand-held pan's sigma_f is 2-5% before
+    # its loop closes, 0.02-0.04% after (the real sets, benchmarks/peers.py).
+    converged_max_sigma_f: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.focal_model not in ("varying", "constant"):
+            raise ValueError(f"focal_model must be 'varying' or 'constant', not {self.focal_model!r}")
+
+    @property
+    def fixed_lens(self) -> bool:
+        return self.focal_model == "constant"
+
+    def intrinsics_model(self) -> IntrinsicsModel:
+        """The self-calibration model (section 3.3.1): square pixels, zero skew, a constant principal
+        point, and f varying per frame or (a fixed lens) constant."""
+        if self.fixed_lens:
+            return IntrinsicsModel(focal=ParamMode.CONSTANT)
+        return IntrinsicsModel()
 
     def nominal_focal(self, width: int) -> float:
         if self.nominal_focal_px > 0.0:
@@ -239,6 +269,9 @@ class KeyframeBundleSolver:
         self.lens_estimate: LensEstimate | None = None
         self.noise_estimate: float | None = None  # px, residual sigma of the last distortion solve
         self.distortion_mode = "curve"  # lam per frame on a lam(f) curve ("curve") or free ("frame")
+        # a fixed lens with estimate_distortion: the one division coefficient and its 1-sigma
+        self.shared_lam: float | None = None
+        self.sigma_shared_lam = math.nan
 
     def __call__(
         self,
@@ -275,8 +308,10 @@ class KeyframeBundleSolver:
     ) -> SelfCalibrationResult:
         # raw-point solve: an LM start flagged only for its motion (section 6.2, LM on corrected
         # homographies) is still refined, the adjustment's own analysis decides
+        # a fixed lens likewise: LM on homographies of a pan flags a near-ambiguity that the
+        # adjustment on the point matches resolves (measured on the real hand-held sets)
         usable = lm.ok or (
-            self.lens is not None
+            (self.lens is not None or self.config.fixed_lens)
             and bool(lm.info.get("solver_ok", False))
             and bool(np.all(np.isfinite(lm.K)))
         )
@@ -287,6 +322,14 @@ class KeyframeBundleSolver:
         except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
             self.last_message = f"bundle adjustment skipped: {exc}"
             return lm
+        if ba is not None and self.config.fixed_lens and _uncertain_motion(ba):
+            # a fixed lens: the adjustment's near-ambiguity verdict (6.2) stands, with its own estimate
+            # (uncertain: DEGENERATE_MOTION), rather than LM's confident one on homographies
+            # (the real sets before their loop closes: LM 8-18% off with a 1-2% sigma)
+            ba.info["solver_ok"] = True
+            self.last_method = ba.method
+            ba.method = f"{lm.method}+{ba.method}"
+            return ba
         if ba is None or not ba.ok or not np.all(np.isfinite(ba.K)):
             self.last_message = "bundle adjustment failed: " + (
                 "no observations" if ba is None else ba.message
@@ -304,10 +347,14 @@ class KeyframeBundleSolver:
             index[self.reference_keyframe_id] = 0
         ids = [self.reference_keyframe_id, *(kf.keyframe_id for kf in keyframes)]
         n_frames = len(H)
+        fixed = self.config.fixed_lens
+        shared = fixed and self.config.estimate_distortion and self.lens is None
         lam0 = None
         if self.lens is not None:
             lm = self._with_connectors(lm, index, ids, image_size)
             lam0 = np.array([_guess(self.lens.lam_guess, k, float(K[1, 1])) for k, K in zip(ids, lm.K)])
+        elif shared:  # raw matches, one coefficient for the lens (section 7), from the last estimate
+            lam0 = np.full(len(lm.K), self.shared_lam or 0.0)
         rng = np.random.default_rng(0)
         limit = self.config.ba_max_points_per_pair
         if lam0 is not None:
@@ -343,7 +390,7 @@ class KeyframeBundleSolver:
             else:
                 dst = apply_homography(H[j], grid)
                 pairs.append((0, j, *_visible(grid, dst, width, height)))
-            if lam0 is not None:  # the homographies are on corrected pixels: distort the virtual points
+            if self.lens is not None:  # the homographies are on corrected pixels: distort the points
                 a, b, src, dst = pairs[-1]
                 src, dst = self.lens.distort(ids[a], src), self.lens.distort(ids[b], dst)
                 ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
@@ -357,11 +404,14 @@ class KeyframeBundleSolver:
             linked = _linked_to_reference(pairs, len(lm.K))
             absent = [j for j in range(1, len(lm.K)) if not linked[j]]
             pairs = [p for p in pairs if linked[p[0]] and linked[p[1]]]
-        model = IntrinsicsModel(
-            principal_point=ParamMode.VARYING
-            if self.config.ba_principal_point == "varying"
-            else ParamMode.CONSTANT
-        )
+        if fixed:  # one K for every image: a per-keyframe principal point would not be a fixed lens
+            model = self.config.intrinsics_model()
+        else:
+            model = IntrinsicsModel(
+                principal_point=ParamMode.VARYING
+                if self.config.ba_principal_point == "varying"
+                else ParamMode.CONSTANT
+            )
         sigma = self.config.pp_prior_sigma_px
         prior = (np.array(image_centre(image_size)), np.array([sigma, sigma]))
         noise = self.config.ba_noise_sigma_px
@@ -381,11 +431,18 @@ class KeyframeBundleSolver:
             noise_sigma=noise,
             max_iterations=self.config.ba_max_iterations,
             f_min=0.2 * float(np.min(lm.K[:, 1, 1])),
-            distortion=False if lam0 is None else self.distortion_mode,
+            distortion=False if lam0 is None else ("shared" if shared else self.distortion_mode),
             lam_init=None if lam0 is None else lam0[keep],
         )
-        if lam0 is not None and result.ok and np.all(np.isfinite(result.info["lam"])):
+        if (
+            lam0 is not None
+            and (result.ok or _uncertain_motion(result))
+            and np.all(np.isfinite(result.info["lam"]))
+        ):
             self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
+            if shared:
+                self.shared_lam = float(result.info["lam"][0])
+                self.sigma_shared_lam = float(result.info["sigma_lam"][0])
             self.lens_estimate = LensEstimate(
                 principal_point=result.K[0, :2, 2].copy(),
                 sigma_pp=np.asarray(result.sigma_pp[0], dtype=float).copy(),
@@ -408,7 +465,8 @@ class KeyframeBundleSolver:
                 with contextlib.suppress(
                     SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError
                 ):
-                    K_j = intrinsics_from_transferred_diac(H_kj, K[k], IntrinsicsModel(), image_size)
+                    transfer = self.config.intrinsics_model() if fixed else IntrinsicsModel()
+                    K_j = intrinsics_from_transferred_diac(H_kj, K[k], transfer, image_size)
                     R_j = rotation_from_homography(H_kj, K[k], K_j) @ R[k]
                     if np.all(np.isfinite(K_j)) and np.all(np.isfinite(R_j)):
                         K[j], R[j] = K_j, R_j
@@ -494,6 +552,18 @@ def _linked_to_reference(pairs: list[tuple[int, int, Array, Array]], n: int) -> 
                 linked[k] = True
                 stack.append(k)
     return linked
+
+
+def _uncertain_motion(result: SelfCalibrationResult) -> bool:
+    """A finite solution flagged only for the focal/rotation near-ambiguity (section 6.2)."""
+    motion = result.motion
+    return (
+        not result.ok
+        and motion is not None
+        and motion.status == STATUS_NEAR_AMBIGUOUS
+        and bool(np.all(np.isfinite(result.K)))
+        and bool(np.all(result.K[:, 1, 1] > 0.0))
+    )
 
 
 def _guess(guess: Any, keyframe_id: int | None, f: float) -> float:
@@ -594,6 +664,7 @@ class CalibratorSession:
         self._dirty = False
         self._frame_times: deque[float] = deque(maxlen=2000)
         self._solve_times: deque[float] = deque(maxlen=200)
+        self._plumb_bob_cache: tuple[tuple, Array] = ((), np.zeros(5))
 
     # ----------------------------------------------------------------------------------------------
     # Frame thread
@@ -928,6 +999,8 @@ class CalibratorSession:
         """plumb_bob D of a calibrated frame: from `distortion_model` (e.g. core/lens_correction's
         SessionLensHook.distortion) when one is plugged in, else zeros (not estimated)."""
         model = self.distortion_model
+        if model is None and self.solver.shared_lam is not None and self.image_size is not None:
+            model = self._shared_plumb_bob  # a fixed lens's one coefficient (SessionConfig)
         if model is None:
             return np.zeros(5)
         try:
@@ -937,6 +1010,16 @@ class CalibratorSession:
         out = np.zeros(5)
         out[: min(5, D.size)] = D[:5]
         return out if np.all(np.isfinite(out)) else np.zeros(5)
+
+    def _shared_plumb_bob(self, K: Array) -> Array:
+        """plumb_bob D of the fixed lens's division coefficient at K (one fit per estimate)."""
+        lam = self.solver.shared_lam
+        assert lam is not None and self.image_size is not None
+        key = (lam, *np.round(np.asarray(K, dtype=float)[[0, 0, 1], [0, 2, 2]], 3))
+        if self._plumb_bob_cache[0] != key:
+            k1, k2 = division_to_plumb_bob(lam, K, *self.image_size)
+            self._plumb_bob_cache = (key, np.array([k1, k2, 0.0, 0.0, 0.0]))
+        return self._plumb_bob_cache[1]
 
     # ---- keyframe matches (frame thread queues, worker applies) ------------------------------------
     def add_keyframe_matches(
@@ -1066,6 +1149,7 @@ class CalibratorSession:
                 prior = self.zoom_model.predict(zoom).K
         return IncrementalCalibrator(
             self.image_size,
+            self.config.intrinsics_model(),
             min_rotation_deg=self.config.min_rotation_deg,
             max_keyframes=self.config.max_keyframes,
             prior_K=prior,
@@ -1110,12 +1194,20 @@ class CalibratorSession:
             ref = self.solver.reference_keyframe_id
             if ref is not None:
                 keyframes[int(ref)] = (np.eye(3), K_ref, np.eye(3))
+        state = calibrator.state.value
+        solve = calibrator.last_solve
+        if self.config.fixed_lens and state == CONVERGED and solve is not None:
+            # a stable solution is not yet the calibration while its focal length is this uncertain
+            rel = solve.sigma_f_ref / solve.K_ref[1, 1]
+            if not rel <= self.config.converged_max_sigma_f:
+                state = CALIBRATING
+                message = f"1-sigma of f {100 * rel:.2g}% > {100 * self.config.converged_max_sigma_f:.2g}%"
         self._snapshot = _Snapshot(
             zoom_table=self._zoom_table(),
             keyframes=keyframes,
             calibrator=snapshot_calibrator,
             calibrated=calibrator.calibrated,
-            state=calibrator.state.value,
+            state=state,
             message=message,
             residual=float(residual),
             keyframe_count=len(calibrator.keyframes) + 1,

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from ptz_selfcal.core.intrinsics import image_centre
+from ptz_selfcal.core.intrinsics import IntrinsicsModel, ParamMode, image_centre
 
 Array = NDArray[np.float64]
 
@@ -53,6 +53,22 @@ class MotionReport:
         return d
 
 
+def single_axis_is_degenerate(model: IntrinsicsModel) -> bool:
+    """Whether rotation about a single axis leaves the model's intrinsics undetermined (6.1).
+
+    Constant K (Hartley 1997): a rotation R about axis a keeps every DIAC K (alpha I + beta a a^T) K^T
+    fixed, a one-parameter family; in the image it changes the aspect ratio (and skew / principal point
+    unless a is a camera axis), so with the aspect ratio KNOWN and the skew known the family is gone -
+    section 6.1 (Hayman 2000): for pure pan or tilt the aspect ratio must be known and the skew or the
+    principal point constrained. A fixed lens (constant f and principal point, square pixels, zero skew)
+    is therefore calibrated by a pan alone. With a focal length varying per frame the session keeps
+    reporting pan-only/tilt-only motion as degenerate (DESIGN.md 5.5).
+    """
+    if model.focal is ParamMode.VARYING or model.principal_point is ParamMode.VARYING:
+        return True
+    return model.aspect is not ParamMode.KNOWN or model.skew is not ParamMode.KNOWN
+
+
 def rotation_vectors(R: ArrayLike) -> Array:
     """(n, 3) axis-angle vectors (radians) of rotations relative to the reference frame."""
     return Rotation.from_matrix(np.asarray(R, dtype=float).reshape(-1, 3, 3)).as_rotvec()
@@ -80,12 +96,15 @@ def analyse_motion(
     single_axis_ratio: float = 0.05,
     min_disambiguation_px: float = 1.0,
     max_relative_sigma_f: float = 0.02,
+    single_axis_degenerate: bool = True,
 ) -> MotionReport:
     """Classify a sequence's motion for self-calibration (section 6).
 
     R: (n, 3, 3) rotations of each frame relative to frame 0; K: (n, 3, 3) per-frame intrinsics;
     sigma_f: optional (n,) 1-sigma focal uncertainties (pixels) from a solver's Jacobian.
     Status, in order of precedence: insufficient_rotation, degenerate_single_axis, near_ambiguous, ok.
+    single_axis_degenerate=False (a model for which one rotation axis is enough, see
+    `single_axis_is_degenerate`): rotation about one axis is reported in the fields but not a status.
     """
     rotvec = rotation_vectors(R)
     K = np.asarray(K, dtype=float).reshape(-1, 3, 3)
@@ -106,7 +125,7 @@ def analyse_motion(
     if max_perp < min_rotation_deg:
         status = STATUS_INSUFFICIENT_ROTATION
         message = f"largest rotation off the optical axis {max_perp:.3g} deg < {min_rotation_deg:.3g} deg"
-    elif single_axis:
+    elif single_axis and single_axis_degenerate:
         status = STATUS_SINGLE_AXIS
         message = f"rotation about a single axis (axis ratio {axis_ratio:.3g}): pan-only/tilt-only (6.1)"
     elif disambiguation < min_disambiguation_px or rel_sigma > max_relative_sigma_f:

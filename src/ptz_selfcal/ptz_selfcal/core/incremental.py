@@ -34,6 +34,7 @@ from ptz_selfcal.core.degeneracy import (
     MotionReport,
     analyse_motion,
     rotation_vectors,
+    single_axis_is_degenerate,
 )
 from ptz_selfcal.core.geometry import intrinsic_matrix, normalise_homography, rotation_from_homography
 from ptz_selfcal.core.intrinsics import (
@@ -350,7 +351,13 @@ class IncrementalCalibrator:
         H = np.concatenate([np.eye(3)[None], np.array([kf.H for kf in self.keyframes])])
         K = self._transferred_intrinsics(H)
         R = rotations_from_homographies(H, K)
-        return analyse_motion(R, K, self.image_size, min_rotation_deg=self.min_rotation_deg)
+        return analyse_motion(
+            R,
+            K,
+            self.image_size,
+            min_rotation_deg=self.min_rotation_deg,
+            single_axis_degenerate=single_axis_is_degenerate(self.model),
+        )
 
     def _drop_redundant(self, count: int) -> None:
         """Drop `count` keyframes, each the older of the closest pair in (rotation, log zoom).
@@ -383,12 +390,17 @@ def intrinsics_from_transferred_diac(
     H is (3, 3) or (n, 3, 3); returns K of the same leading shape. With a constant or known
     principal point (aspect and skew taken from K_ref) only f is free: lambda omega*_j = f^2 P + Q
     is linear in (lambda, f^2), solved by least squares in coordinates centred and scaled by
-    K_ref's focal length. Otherwise (per-frame principal point) K_j is the Cholesky factor.
+    K_ref's focal length. Otherwise (per-frame principal point) K_j is the Cholesky factor. A fixed
+    lens (focal length and principal point not varying) has K_j = K_ref.
     """
     H = np.asarray(H, dtype=float)
     single = H.ndim == 2
     H = H.reshape(-1, 3, 3)
     K_ref = np.asarray(K_ref, dtype=float)
+    if model.focal is not ParamMode.VARYING and model.principal_point is not ParamMode.VARYING:
+        # a fixed lens: every frame has the reference's K (H only carries the rotation)
+        K = np.repeat((K_ref / K_ref[2, 2])[None], len(H), axis=0)
+        return K[0] if single else K
     s = K_ref[1, 1]
     c = image_centre(image_size)
     N = np.array([[1.0 / s, 0.0, -c[0] / s], [0.0, 1.0 / s, -c[1] / s], [0.0, 0.0, 1.0]])

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-from ptz_selfcal.core.degeneracy import analyse_motion
+from ptz_selfcal.core.degeneracy import analyse_motion, single_axis_is_degenerate
 from ptz_selfcal.core.intrinsics import (
     ASPECT,
     CX,
@@ -220,7 +220,12 @@ def lm_selfcalibration(
     )
     if analyse:
         result.motion = analyse_motion(
-            R, K, image_size, sigma_f=sigma_f, max_relative_sigma_f=max_relative_sigma_f
+            R,
+            K,
+            image_size,
+            sigma_f=sigma_f,
+            max_relative_sigma_f=max_relative_sigma_f,
+            single_axis_degenerate=single_axis_is_degenerate(model),
         )
         if result.ok and not result.motion.well_posed:
             result.ok = False
