@@ -313,6 +313,34 @@ def test_pan_only_motion_is_reported_degenerate(ros, tmp_path: Path) -> None:
         harness.close()
 
 
+def test_fixed_lens_parameter_calibrates_a_pan(ros, tmp_path: Path) -> None:
+    """The same pan with focal_model:=constant (a fixed lens): calibrated, CONVERGED, f and pp exact."""
+    ns = "cam_c"
+    proc = start_calibrator("/" + ns, "nominal_hfov_deg:=50.0", "focal_model:=constant")
+    harness = _namespaced_harness(ns)
+    try:
+        harness.wait_connected()
+        n = 72
+        K, R, H, f = sequence(n, pan_deg=30.0, tilt_deg=0.0)
+        K = np.repeat(K[:1], n, axis=0)
+        H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
+        for j in range(n):
+            keyframe = j % 6 == 0
+            state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
+            harness.send(j, H[j], state, j - j % 6, f[0])
+            time.sleep(0.01)
+        harness.wait_settled(expected_keyframes=0, timeout=20.0)
+        stamp = harness.send(n + 1000, H[n - 1], HomographyStamped.TRACKING, n - 6, f[0])
+        out = harness.frames[stamp]
+        assert out.status == FrameCalibration.CONVERGED, out.status
+        assert abs(out.fx / K[0][0, 0] - 1.0) < 1e-3 and abs(out.fy / K[0][1, 1] - 1.0) < 1e-3
+        assert np.hypot(out.cx - K[0][0, 2], out.cy - K[0][1, 2]) < 2.0
+        assert 0.0 < out.sigma_f < 0.01 * out.fx
+    finally:
+        stop(proc)
+        harness.close()
+
+
 def _namespaced_harness(ns: str) -> Harness:
     """A Harness whose relative topics resolve in namespace ns (rclpy node namespace)."""
     harness = Harness.__new__(Harness)

@@ -353,6 +353,11 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     k1, k2 = division_to_plumb_bob(lam, K[0], WIDTH, HEIGHT)
     D = outs[-1].D
     assert abs(D[0] / k1 - 1.0) < 0.05 and np.all(D[2:] == 0.0), (D, k1, k2)
+    # the coefficient is saved and restored with the calibration
+    restored = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
+    restored.load_dict(session.to_dict())
+    out = restored.process(cs.FrameInput(99.0, H[30], "TRACKING", WIDTH, HEIGHT, 30, "ref"))
+    assert restored.solver.shared_lam == session.solver.shared_lam and np.allclose(out.D, D)
     plain = cs.CalibratorSession(fixed_lens_config())
     feed_distorted(plain, K, H, lam)
     assert abs(plain.calibrator.reference_K[1, 1] / 1000.0 - 1.0) > 5e-3

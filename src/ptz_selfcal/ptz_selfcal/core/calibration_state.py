@@ -1304,6 +1304,7 @@ class CalibratorSession:
                     if last is None
                     else {"K": last.K.tolist(), "D": last.D.tolist(), "sigma_f": float(last.sigma_f)},
                     "calibrator": None if self.calibrator is None else self.calibrator.to_dict(),
+                    "shared_lam": self.solver.shared_lam,  # a fixed lens's distortion (None: none)
                 }
             )
 
@@ -1341,6 +1342,10 @@ class CalibratorSession:
                 for k, v in (data.get("keyframe_zoom") or {}).items()
             }
             sampled = {int(k) for k in data.get("sampled_keyframes") or []}
+            shared_lam = data.get("shared_lam")
+            shared_lam = None if shared_lam is None else float(shared_lam)
+            if shared_lam is not None and not math.isfinite(shared_lam):
+                raise StateFileError("shared_lam is not finite")
             ref_kf = data.get("reference_keyframe_id")
         except StateFileError:
             raise
@@ -1353,6 +1358,7 @@ class CalibratorSession:
             self.calibrator = calibrator
             self.keyframe_zoom = keyframe_zoom
             self._sampled_keyframes = sampled
+            self.solver.shared_lam = shared_lam if self.config.fixed_lens else None
             self._seen_keyframes = set(keyframe_zoom)
             self.last_good = last_good
             if calibrator is not None:

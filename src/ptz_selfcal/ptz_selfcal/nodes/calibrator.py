@@ -118,13 +118,29 @@ PARAMS = [
         in_range(0.1, 1e5),
     ),
     Param(
+        "focal_model",
+        "varying",
+        "varying: a zooming camera, f per keyframe (pan-only or tilt-only motion is DEGENERATE_MOTION); "
+        "constant: a fixed lens, one f and principal point for every image, calibrated by a pan alone "
+        "(section 6.1: constant K with square pixels and zero skew)",
+        one_of("varying", "constant"),
+    ),
+    Param(
+        "converged_max_sigma_f",
+        0.01,
+        "focal_model constant: CONVERGED only while the focal length's 1-sigma is below this fraction "
+        "(else CALIBRATING)",
+        in_range(1e-6, 1.0),
+    ),
+    Param(
         "estimate_distortion",
         False,
-        "radial distortion (issue 6) through core/lens_correction.SessionLensHook: division model about "
-        "the principal point estimated in the keyframe bundle adjustment on the raw keyframe matches "
-        "(lam(f) curve), homographies corrected with it before self-calibration, D = its plumb_bob fit "
-        "at each frame's K. Off by default: on an undistorted lens it costs accuracy (demo bag focal "
-        "median 0.026% -> 0.066%, benchmarks/results/distortion.txt)",
+        "radial distortion (issue 6). focal_model varying: through core/lens_correction.SessionLensHook, "
+        "division model about the principal point estimated in the keyframe bundle adjustment on the raw "
+        "keyframe matches (lam(f) curve), homographies corrected with it before self-calibration. "
+        "focal_model constant: ONE division coefficient for the lens, estimated with K in that "
+        "adjustment. D = its plumb_bob fit at each frame's K. Off by default: on an undistorted lens it "
+        "costs accuracy (demo bag focal median 0.026% -> 0.066%, benchmarks/results/distortion.txt)",
     ),
     Param(
         "ba_max_points_per_pair", 50, "matches per keyframe pair used by the adjustment", in_range(8, 10000)
@@ -169,10 +185,14 @@ class CalibratorNode(Node):
             ba_max_points_per_pair=p["ba_max_points_per_pair"],
             min_solve_period_s=p["reoptimise_min_interval"],
             max_solve_duty=p["reoptimise_max_duty"],
+            focal_model=p["focal_model"],
+            converged_max_sigma_f=p["converged_max_sigma_f"],
         )
+        # a fixed lens estimates its one distortion coefficient inside the session's adjustment
+        config.estimate_distortion = bool(p["estimate_distortion"]) and config.fixed_lens
         self._session = CalibratorSession(config, state_dir=p["state_dir"] or None)
         self._lens: SessionLensHook | None = None
-        if p["estimate_distortion"]:
+        if p["estimate_distortion"] and not config.fixed_lens:
             self._lens = SessionLensHook(config.nominal_focal)
             self._session.distortion_model = self._lens.distortion
         for line in self._session.restore():
@@ -199,7 +219,7 @@ class CalibratorNode(Node):
             f"calibrating {topics.HOMOGRAPHY} -> {self._info_pub.topic_name}; state_dir "
             f"{p['state_dir'] or '(none: no persistence)'}; bundle adjustment "
             f"{'on' if p['bundle_adjustment'] else 'off'} (pp {p['ba_principal_point']}, "
-            f"prior sigma {p['pp_prior_sigma_px']} px)"
+            f"prior sigma {p['pp_prior_sigma_px']} px); focal length {p['focal_model']}"
         )
 
     # ----------------------------------------------------------------------------------------------
