@@ -324,12 +324,15 @@ def test_fixed_lens_parameter_calibrates_a_pan(ros, tmp_path: Path) -> None:
         K, R, H, f = sequence(n, pan_deg=30.0, tilt_deg=0.0)
         K = np.repeat(K[:1], n, axis=0)
         H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
+        rng = np.random.default_rng(3)
         for j in range(n):
             keyframe = j % 6 == 0
             state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
             harness.send(j, H[j], state, j - j % 6, f[0])
+            if keyframe and j >= 6:  # the tracker's KeyframeMatches (the adjustment's input)
+                harness.send_matches(j, j - 6, H, rng)
             time.sleep(0.01)
-        harness.wait_settled(expected_keyframes=0, timeout=20.0)
+        harness.wait_settled(expected_keyframes=n // 6 - 1, timeout=20.0)
         stamp = harness.send(n + 1000, H[n - 1], HomographyStamped.TRACKING, n - 6, f[0])
         out = harness.frames[stamp]
         assert out.status == FrameCalibration.CONVERGED, out.status

@@ -339,14 +339,18 @@ def feed_distorted(session: cs.CalibratorSession, K: np.ndarray, H, lam: float, 
 def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     """A fixed lens with barrel distortion (6% corner shift) panning and tilting: with
     estimate_distortion the session recovers f, the principal point and the one division coefficient
-    from the raw matches, and publishes D as its plumb_bob fit; without it f is biased."""
+    from the raw matches, and publishes D as its plumb_bob fit. The lens-model check keeps it
+    CALIBRATING: without a loop closure f moves by more than 2% when the radial term is dropped (the
+    documented, conservative side of converged_max_lens_model_change); with the check off it is
+    CONVERGED."""
     from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
 
     K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
     session = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
     outs = feed_distorted(session, K, H, lam)
-    assert outs[-1].status == cs.CONVERGED
+    assert outs[-1].status == cs.CALIBRATING and "radial term" in outs[-1].message
+    assert session.solver.lens_model_change > 0.02
     ref = session.calibrator.reference_K
     assert abs(ref[1, 1] / 1000.0 - 1.0) < 2e-3 and np.hypot(*(ref[:2, 2] - PP)) < 2.0
     assert abs(session.solver.shared_lam / lam - 1.0) < 0.02
@@ -358,9 +362,28 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     restored.load_dict(session.to_dict())
     out = restored.process(cs.FrameInput(99.0, H[30], "TRACKING", WIDTH, HEIGHT, 30, "ref"))
     assert restored.solver.shared_lam == session.solver.shared_lam and np.allclose(out.D, D)
+    unchecked = cs.CalibratorSession(
+        fixed_lens_config(estimate_distortion=True, converged_max_lens_model_change=1.0)
+    )
+    assert feed_distorted(unchecked, K, H, lam)[-1].status == cs.CONVERGED
+
+
+def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
+    """The same distorted lens calibrated WITHOUT the radial term: f is biased, its sigma_f says
+    nothing about it, and the lens-model check keeps it from CONVERGED (with the check off it would
+    be published as CONVERGED)."""
+    from ptz_selfcal.core.distortion import division_lambda_for_corner_shift
+
+    K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
+    lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
     plain = cs.CalibratorSession(fixed_lens_config())
-    feed_distorted(plain, K, H, lam)
-    assert abs(plain.calibrator.reference_K[1, 1] / 1000.0 - 1.0) > 5e-3
+    outs = feed_distorted(plain, K, H, lam)
+    f = plain.calibrator.reference_K[1, 1]
+    assert abs(f / 1000.0 - 1.0) > 5e-3
+    assert cs.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].status == cs.CALIBRATING and "radial term" in outs[-1].message
+    unchecked = cs.CalibratorSession(fixed_lens_config(converged_max_lens_model_change=1.0))
+    assert feed_distorted(unchecked, K, H, lam)[-1].status == cs.CONVERGED
 
 
 def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> None:
@@ -372,3 +395,18 @@ def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> No
     assert cs.CONVERGED not in {o.status for o in outs}
     assert outs[-1].status == cs.CALIBRATING and "1-sigma of f" in outs[-1].message
     assert session.calibrator.state.value == cs.CONVERGED  # the solver itself is stable
+
+
+def test_initialising_says_why() -> None:
+    """Stills fed at a video rate: every keyframe is a fast move (held out of the solve), and the
+    frames say so instead of staying INITIALISING without a reason."""
+    _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    session = cs.CalibratorSession(fixed_lens_config())
+    outs = []
+    for j in range(0, 64, 6):  # one "still" every 6th frame, 1 ms apart
+        kf = cs.FrameInput(j * 1e-3, H[j], "NEW_KEYFRAME", WIDTH, HEIGHT, j, "ref", float(f[j]))
+        outs.append(session.process(kf))
+        session.step(5.0)
+    assert {o.status for o in outs} == {cs.INITIALISING}
+    assert " of min_keyframes 4 keyframes" in outs[-1].message
+    assert "held out of the solve" in outs[-1].message and "max_keyframe_motion" in outs[-1].message

@@ -133,6 +133,14 @@ PARAMS = [
         in_range(1e-6, 1.0),
     ),
     Param(
+        "converged_max_lens_model_change",
+        0.02,
+        "focal_model constant: CONVERGED only while f moves by less than this fraction when the "
+        "adjustment's radial term is toggled (a focal length the lens model moves is not pinned by the "
+        "geometry: a hand-held pan before its loop closes)",
+        in_range(1e-6, 10.0),
+    ),
+    Param(
         "estimate_distortion",
         False,
         "radial distortion (issue 6). focal_model varying: through core/lens_correction.SessionLensHook, "
@@ -187,6 +195,7 @@ class CalibratorNode(Node):
             max_solve_duty=p["reoptimise_max_duty"],
             focal_model=p["focal_model"],
             converged_max_sigma_f=p["converged_max_sigma_f"],
+            converged_max_lens_model_change=p["converged_max_lens_model_change"],
         )
         # a fixed lens estimates its one distortion coefficient inside the session's adjustment
         config.estimate_distortion = bool(p["estimate_distortion"]) and config.fixed_lens
