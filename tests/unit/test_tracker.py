@@ -368,3 +368,27 @@ def test_corrupt_or_inconsistent_map_is_refused_and_the_tracker_starts_fresh(tex
     result = other.track(small, 0.25)
     assert result.state == TrackingState.NEW_KEYFRAME and result.reference_id == data["frame_index"] + 1
     assert HomographyTracker().export_map() is None
+
+
+def test_back_and_forth_passes_revisit_the_stored_keyframes(texture):
+    """A camera panning over the same views again (a patrol, a preset tour) tracks them against the
+    keyframes it made on the first pass instead of adding new ones on every pass (issue 7: the
+    calibrator's bounded keyframe set otherwise trades older keyframes for newer, less linked ones)."""
+    out = [similarity(1.0, -200.0 - 14.0 * i, -150.0 - 1.0 * i, 0.0005 * i) for i in range(41)]
+    sequence = [*out, *out[-2::-1], *out[1:]]  # out, back, out again
+    frames = [view(texture, H) for H in sequence]
+    passes = {}
+    for revisit in (True, False):
+        results = run(HomographyTracker(TrackerConfig(revisit_keyframes=revisit)), frames)
+        assert all(r.state in (TrackingState.TRACKING, TrackingState.NEW_KEYFRAME) for r in results)
+        first = {r.keyframe_id for r in results[:41] if r.state == TrackingState.NEW_KEYFRAME}
+        later = [r for r in results[41:] if r.state == TrackingState.NEW_KEYFRAME]
+        passes[revisit] = (first, later, {r.keyframe_id for r in results[41:]})
+        errors = [
+            grid_error(r.H_ref, true_full(sequence[0], sequence[i])).max() for i, r in enumerate(results)
+        ]
+        assert max(errors) < 0.3, (revisit, max(errors))
+    first, later, used = passes[True]
+    assert len(first) >= 3
+    assert later == [] and used <= first  # every later frame tracked against a first-pass keyframe
+    assert len(passes[False][1]) >= 3  # without revisiting, every pass adds keyframes

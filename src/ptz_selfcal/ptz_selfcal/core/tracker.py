@@ -10,8 +10,11 @@ A new keyframe is made when the overlap, the scale or the surviving tracks drop.
 parent (the tracked fit) and to older overlapping keyframes, fewest hops to the reference first, each
 re-measured independently of the chain (photometric KLT against the warped older keyframe, with
 descriptor re-matching as fallback); its reference -> keyframe homography goes through the link with
-the fewest hops, so chained error stays bounded when the camera comes back. After a loss (black
-frame, cut, fast move) descriptor matching against the stored keyframes relocalises the camera.
+the fewest hops, so chained error stays bounded when the camera comes back. A frame that needs a new
+keyframe while a stored one covers it well (a camera back at a view it has seen) is re-measured against
+that keyframe and tracked on from it instead: repeated passes over the same views add no keyframes.
+After a loss (black frame, cut, fast move) descriptor matching against the stored keyframes relocalises
+the camera.
 Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
 
 Persistence: export_map() gives the keyframe map as plain data (ids, reference, homographies, working
@@ -98,6 +101,9 @@ class TrackerConfig:
     link_max_deviation: float = 8.0  # full-res px a link may differ from the tracked chain
     link_candidates: int = 2  # older keyframes re-matched per new keyframe (besides the previous one)
     link_with_descriptors: bool = False  # always start links from ORB matches (else only as fallback)
+    # A camera back at a view it has seen: repeated passes leave the map and the calibration alone.
+    revisit_keyframes: bool = True  # a frame needing a new keyframe tracks a stored one covering it instead
+    revisit_min_overlap: float = 0.85  # fraction of the frame a stored keyframe must cover to be revisited
     max_keyframes: int = 64  # keyframe store cap (oldest pruned; the reference is kept)
     descriptor: str = "orb"  # re-matching/relocalisation descriptor: "orb" or "sift"
     descriptor_features: int = 500
@@ -322,6 +328,9 @@ class HomographyTracker:
         H_ref = H_keyframe @ keyframe.H_ref
         inlier_count = int(fit.inliers.sum())
         if self._needs_keyframe(fit.H, inlier_count, image.shape):
+            revisited = self._revisit(image, stamp, keyframe, H_ref, match_count)
+            if revisited is not None:
+                return revisited
             return self._new_keyframe(image, stamp, keyframe, fit, match_count)
         return TrackResult(
             state=TrackingState.TRACKING, frame_index=self._frame_index, stamp=stamp,
@@ -469,6 +478,73 @@ class HomographyTracker:
             if linked is not None:
                 links.append(linked)
         return self._commit_keyframe(image, stamp, corners, links, TrackingState.NEW_KEYFRAME, match_count)
+
+    def _revisit(
+        self, image: np.ndarray, stamp: float | None, current: Keyframe, H_ref: Array, match_count: int
+    ) -> TrackResult | None:
+        """Go on tracking against a stored keyframe that covers at least revisit_min_overlap of the frame
+        (predicted through the chain; the fewest hops to the reference, then the largest overlap),
+        re-measured photometrically and checked against the chain like a link, instead of making a new
+        keyframe; None: no such keyframe.
+
+        A camera going back and forth over the same views would otherwise add keyframes on every pass,
+        and the calibrator's bounded keyframe set would trade older, better-linked keyframes of a view for
+        newer ones: its frames' calibration then drifts pass after pass (issue 7)."""
+        c = self.config
+        if not c.revisit_keyframes:
+            return None
+        S = work_from_full(self._scale)
+        best: tuple[tuple[int, float], Keyframe, Array] | None = None
+        for kf in self._keyframes.values():
+            if kf.id == current.id:
+                continue
+            H_work = S @ H_ref @ np.linalg.inv(kf.H_ref) @ np.linalg.inv(S)  # keyframe -> frame
+            scale = _local_scale(H_work, image.shape)
+            if max(scale, 1.0 / scale) > math.sqrt(c.keyframe_max_scale_change):
+                continue
+            overlap = _overlap(np.linalg.inv(H_work), image.shape)
+            rank = (kf.depth, -overlap)  # fewest hops to the reference first, as links
+            if overlap >= c.revisit_min_overlap and (best is None or rank < best[0]):
+                best = (rank, kf, H_work)
+        if best is None:
+            return None
+        _, kf, H_chain = best
+        corners = self._detect(image)
+        linked = self._link(kf, image, corners, H_chain, rematch=False, hops=current.depth + 1 + kf.depth)
+        if linked is None:
+            return None
+        fit = linked[1]
+        # the keyframe's own corners seen in the frame become the tracks (as after a new keyframe)
+        h, w = image.shape
+        margin = c.klt_window // 2 + 1
+        seen = apply_homography(fit.H, kf.corners)
+        inside = np.all(np.isfinite(seen), axis=1) & np.all(seen >= margin, axis=1)
+        inside &= (seen[:, 0] <= w - 1 - margin) & (seen[:, 1] <= h - 1 - margin)
+        inlier_count = int(fit.inliers.sum())
+        if inside.sum() < c.min_inliers or self._needs_keyframe_after(fit.H, image.shape):
+            return None
+        velocity = self._tracks.H_last @ np.linalg.inv(self._tracks.H_previous)
+        self._tracks = _Tracks(
+            current=seen[inside].astype(np.float32), in_keyframe=kf.corners[inside].copy(),
+            initial_count=int(inside.sum()), H_last=fit.H, H_previous=np.linalg.inv(velocity) @ fit.H,
+        )  # fmt: skip
+        self._keyframe_id = kf.id
+        self._keyframes.move_to_end(kf.id)  # in use: the last the store prunes
+        H_keyframe = homography_work_to_full(fit.H, self._scale)
+        return TrackResult(
+            state=TrackingState.TRACKING, frame_index=self._frame_index, stamp=stamp,
+            H_ref=H_keyframe @ kf.H_ref, H_keyframe=H_keyframe, keyframe_id=kf.id,
+            reference_id=self._reference_id, inlier_count=inlier_count, match_count=match_count,
+            rms_transfer_error=fit.rms / self._scale,
+        )  # fmt: skip
+
+    def _needs_keyframe_after(self, H_work: Array, shape: tuple[int, ...]) -> bool:
+        """_needs_keyframe for a freshly measured keyframe -> frame H (all tracks new: scale and overlap)."""
+        c = self.config
+        scale_change = _local_scale(H_work, shape)
+        if max(scale_change, 1.0 / scale_change) > c.keyframe_max_scale_change:
+            return True
+        return _overlap(np.linalg.inv(H_work), shape) < c.keyframe_min_overlap
 
     def _older_candidates(
         self, image: np.ndarray, H_ref_guess: Array, exclude: int
