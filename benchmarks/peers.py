@@ -12,7 +12,11 @@ Rows per input: OpenCV's stitching pipeline (benchmarks/opencv_peer.py) and its 
 (ported / corrected) on the tracker's homographies; the paper's methods on the tracker's homographies
 (linear square pixels with the principal point known = image centre and varying; LM eq. 22 with a
 constant and a varying principal point; bundle adjustment MLE eq. 26 and MAP eq. 27 on points
-transferred by those homographies); ptz_selfcal online (HomographyTracker + IncrementalCalibrator).
+transferred by those homographies); ptz_selfcal online (the tracker + the calibrator node's
+CalibratorSession with its defaults, a zooming camera) and, on the real sets, the same session with
+focal_model "constant" (a fixed lens), with and without estimate_distortion. "As published" counts the
+frames the session published as CONVERGED; "final state" replays every frame through the calibration
+the session held at the end.
 """
 
 from __future__ import annotations
@@ -63,13 +67,9 @@ IntArray = NDArray[np.intp]
 DATA = Path("/work/shared/data")
 STRIDE = 5  # OpenCV sees every 5th frame (issue 8)
 FPS = 15.0
-BA_POINTS_PER_LINK = 40  # online bundle adjustment: correspondences kept per keyframe link
-BA_ITERATIONS = 10
 SESSION_BUDGET_S = 0.5  # the calibrator node's default reoptimise_budget
 # A fixed lens (the real sets): constant unknown focal length and principal point, square pixels.
 FIXED_LENS = IntrinsicsModel(focal=ParamMode.CONSTANT)
-# The same with the principal point known at the image centre (the paper's strongest constraint set).
-FIXED_LENS_KNOWN_PP = IntrinsicsModel(focal=ParamMode.CONSTANT, principal_point=ParamMode.KNOWN)
 RESULTS = Path(__file__).resolve().parent / "results" / "peers.txt"
 
 
@@ -564,96 +564,54 @@ def _solve_row(name: str, fn: Callable, idx: IntArray, track_ms: tuple[float, fl
 # --------------------------------------------------------------------------------------------------
 # ptz_selfcal online
 # --------------------------------------------------------------------------------------------------
-def _subsample(a: Array, b: Array, count: int) -> tuple[Array, Array]:
-    """At most `count` evenly spread correspondences (bounds the bundle adjustment's cost)."""
-    if len(a) <= count:
-        return a, b
-    keep = np.linspace(0, len(a) - 1, count).round().astype(np.intp)
-    return a[keep], b[keep]
+# The real sets are still photographs without time stamps: the session gets one still per second (a
+# hand-held pan), not the video rate, so its fast-motion gate (SessionConfig.max_keyframe_motion, image
+# widths per second) judges them as a photographer's pace rather than as a preset recall at 15 fps.
+STILL_INTERVAL_S = 1.0
+ONLINE = "ptz_selfcal online (nodes' tracker+calibrator)"
 
 
-def bundle_solver(
-    reference_id: int,
-    *,
-    use_prior: bool = False,
-    per_link: int | None = None,
-    analyse: bool = True,
-    distortion: bool = False,
-) -> Callable:
-    """IncrementalCalibrator solver seam: LM on eq. 22, then bundle adjustment (eq. 26) over the
-    keyframes' link correspondences (the tracker's KeyframeLinks attached to each keyframe), at most
-    `per_link` of them per link. With `distortion` the adjustment also fits a division-model
-    coefficient per image about the principal point (core/bundle.py, section 7) on the raw points."""
-    from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior, pair_observations
-    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+def session_config(focal_model: str = "varying", fixed_lens_distortion: bool = False):
+    """The calibrator node's configuration: its defaults, and focal_model / estimate_distortion as the
+    node passes them (a fixed lens estimates its one distortion coefficient in the session)."""
+    from ptz_selfcal.core.calibration_state import SessionConfig
 
-    per_link = per_link or BA_POINTS_PER_LINK
-
-    def solve(H, image_size, model, K_init, keyframes, max_nfev):
-        lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max_nfev, analyse=analyse)
-        if not lm.ok:
-            return lm
-        index = {reference_id: 0} | {kf.keyframe_id: k + 1 for k, kf in enumerate(keyframes)}
-        matches, seen = [], set()
-        for kf in keyframes:
-            for link in kf.matches or ():
-                key = (link.source_id, link.target_id)
-                if key in seen or link.source_id not in index or link.target_id not in index:
-                    continue
-                seen.add(key)
-                a, b = _subsample(link.source_points, link.target_points, per_link)
-                matches.append((index[link.source_id], index[link.target_id], a, b))
-        try:
-            prior = default_pp_prior(image_size) if use_prior else None
-            ba = bundle_adjust(pair_observations(matches), lm.K, lm.R, image_size, model, pp_prior=prior,
-                               max_iterations=BA_ITERATIONS, distortion=distortion)  # fmt: skip
-        except SelfCalibrationError:
-            return lm
-        if not ba.ok and analyse:  # without the motion analysis (a fixed lens) a flag is not a failure
-            return lm
-        ba.ok, ba.motion = True, lm.motion
-        return ba
-
-    return solve
+    return SessionConfig(focal_model=focal_model, estimate_distortion=fixed_lens_distortion)
 
 
-def make_calibrator(
-    seq: Sequence, reference_id: int, distortion: bool = False, model: IntrinsicsModel = FIXED_LENS
-):
-    """The calibrator as the node runs it; a fixed lens (real sets) gets a constant-focal model."""
-    from ptz_selfcal.core.incremental import IncrementalCalibrator
+def run_session(
+    seq: Sequence, focal_model: str = "varying", distortion: bool = False
+) -> tuple[list[MethodResult], Tracking]:
+    """Frames one by one as the nodes run them: tracker -> CalibratorSession (the calibrator node's
+    logic: IncrementalCalibrator, LM + keyframe MAP bundle adjustment), whose worker step runs inline
+    after every frame with the node's default budget (so the timing holds all the work).
 
-    if seq.fixed_focal:
-        solver = bundle_solver(reference_id, analyse=False, use_prior=True, distortion=distortion)
-        calibrator = IncrementalCalibrator(seq.size, model, solver=solver, min_keyframes=2)
-    else:
-        calibrator = IncrementalCalibrator(seq.size, solver=bundle_solver(reference_id))
-    calibrator.reference_id = reference_id
-    return calibrator
-
-
-def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
-    """Frames one by one as the nodes run them: HomographyTracker -> CalibratorSession (the calibrator
-    node's logic: IncrementalCalibrator, LM + keyframe MAP bundle adjustment), whose worker step runs
-    inline after every frame with the node's default budget (so the timing holds all the work).
-
-    A distorted input is calibrated as the product is configured for a distorted lens: the calibrator
-    node with `estimate_distortion: true`, i.e. core/lens_correction.SessionLensHook in front of the
-    session exactly as nodes/calibrator.py wires it (homographies corrected per frame, keyframe matches
-    through the hook, its `work` after every session step, D from its plumb_bob fit)."""
-    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
+    focal_model "varying" (the node's default, a zooming camera) or "constant" (focal_model:=constant,
+    a fixed lens). `distortion` is estimate_distortion:=true: for a varying focal length
+    core/lens_correction.SessionLensHook in front of the session exactly as nodes/calibrator.py wires it
+    (homographies corrected per frame, keyframe matches through the hook, its `work` after every session
+    step, D from its plumb_bob fit); for a fixed lens one coefficient in the session's adjustment.
+    "As published" counts the frames the product published as CONVERGED (DESIGN.md 4: the statuses
+    before it say the calibration is not yet to be taken)."""
+    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput
     from ptz_selfcal.core.lens_correction import SessionLensHook
 
-    config = SessionConfig()
+    fixed = focal_model == "constant"
+    config = session_config(focal_model, fixed and distortion)
     session = CalibratorSession(config)
-    lens = SessionLensHook(config.nominal_focal) if seq.distorted else None
+    lens = SessionLensHook(config.nominal_focal) if distortion and not fixed else None
     if lens is not None:
         session.distortion_model = lens.distortion
-    published: dict[int, tuple[Array, Array]] = {}
+    published: dict[int, tuple[Array, Array, str]] = {}
     statuses: dict[str, int] = {}
     w, h = seq.size
+    dt = STILL_INTERVAL_S if seq.fixed_focal else 1.0 / FPS
+    calib_cpu = 0.0
+    last_message: list[str] = []
 
     def on_frame(i: int, frame: np.ndarray, scale: float, result) -> None:
+        nonlocal calib_cpu
+        c0 = time.process_time()
         for link in result.links:  # the tracker node's KeyframeMatches
             if lens is not None:
                 lens.matches(link.target_id, link.source_id, link.target_points, link.source_points)
@@ -667,32 +625,52 @@ def run_session(seq: Sequence) -> tuple[list[MethodResult], Tracking]:
         H = result.H_ref
         if lens is not None and state in ("TRACKING", "NEW_KEYFRAME", "RELOCALISED"):
             H, state = lens.frame(H, state, kid, ref, w, h)
-        out = session.process(FrameInput(i / FPS, H, state, w, h, kid, ref))
+        out = session.process(FrameInput(i * dt, H, state, w, h, kid, ref))
+        last_message[:] = [out.message]
         if out.source == "calibration" and out.R is not None:
-            published[i] = (out.K, out.R)
+            published[i] = (out.K, out.R, out.status)
         statuses[out.status] = statuses.get(out.status, 0) + 1
         session.step(SESSION_BUDGET_S)
         if lens is not None:
             lens.work(session)
+        calib_cpu += time.process_time() - c0
 
     tracking = track_sequence(seq, on_frame)
     ms = per_frame_ms(tracking, len(seq.frames))
-    name = "ptz_selfcal online (nodes' tracker+calibrator)"
+    if fixed:
+        name = (
+            "ptz_selfcal fixed lens" + (" + radial dist." if distortion else "") + " (focal_model constant)"
+        )
+    else:
+        name = ONLINE
     rows = [published_row(name, seq, published, ms)]
-    if lens is not None:
+    rows[0].note += f" (published statuses {statuses})"
+    if distortion:
         rows[0].note += "; estimate_distortion: true"
-    if not published:
-        tracked: dict[str, int] = {}
-        for r in tracking.results:
-            tracked[str(r.state)] = tracked.get(str(r.state), 0) + 1
-        rows[0].note += f" (tracker states {tracked}; published statuses {statuses})"
+    if last_message:
+        rows[0].note += f"; last frame's message: {last_message[-1][:110]}"
+    if seq.fixed_focal:
+        n = len(seq.frames)
+        stages = ", ".join(f"{k} {1000.0 * v / n:.0f}" for k, v in tracking.stage_cpu.items())
+        rows[0].note += (
+            f"; CPU/frame: front end {1000.0 * (tracking.cpu_seconds - calib_cpu) / n:.0f} ms ({stages}), "
+            f"calibration {1000.0 * calib_cpu / n:.0f} ms"
+        )
     calibrator = session.calibrator
     if calibrator is not None and session.reference_id not in (None, ""):
         calibrator.reference_id = int(session.reference_id)  # the map the session calibrated last
-    rows.append(final_state_row(seq, tracking, calibrator, ms, lens))
-    if lens is not None:
-        rows[1].note += "; estimate_distortion: true"
-    return rows, tracking
+    final = final_state_row(seq, tracking, calibrator, ms, lens)
+    final.method = f"{name}, final state"
+    if calibrator is not None and calibrator.last_solve is not None:
+        solve = calibrator.last_solve
+        final.note += (
+            f"; state {calibrator.state.value}, 1-sigma f {100 * solve.sigma_f_ref / solve.K_ref[1, 1]:.2g}%"
+        )
+    if fixed and distortion and session.solver.shared_lam is not None:
+        final.note += f"; lam {session.solver.shared_lam:.4f}"
+    elif distortion:
+        final.note += "; estimate_distortion: true"
+    return [*rows, final], tracking
 
 
 def per_frame_ms(tracking: Tracking, n_frames: int) -> tuple[float, float]:
@@ -701,69 +679,22 @@ def per_frame_ms(tracking: Tracking, n_frames: int) -> tuple[float, float]:
 
 
 def published_row(name: str, seq: Sequence, published: dict, ms: tuple[float, float]) -> MethodResult:
-    """The K published for each evaluation frame after the warm-up (DESIGN.md section 7)."""
+    """The K published as CONVERGED for each evaluation frame after the warm-up (DESIGN.md section 7)."""
     warm = metrics.warmup_frames(len(seq.frames))
-    idx = np.array([i for i in seq.eval_idx if i in published and i >= warm], dtype=np.intp)
+    idx = np.array(
+        [i for i in seq.eval_idx if i in published and published[i][2] == "CONVERGED" and i >= warm],
+        dtype=np.intp,
+    )
+    note = f"as published CONVERGED, frames >= {warm}" + ("" if len(idx) else ": none")
+    others = [i for i in published if i >= warm and published[i][2] != "CONVERGED"]
+    if seq.f_reference is not None and others:  # what the statuses kept a user from taking
+        err = [100.0 * abs(published[i][0][0, 0] / seq.f_reference - 1.0) for i in others]
+        note += f"; frames published as not converged: f median {np.median(err):.1f}% off AutoStitch"
     if not len(idx):
-        return failed(name, True, "never calibrated")
+        return failed(name, True, note)
     K = np.array([published[i][0] for i in idx])
     R = np.array([published[i][1] for i in idx])
-    note = f"as published, frames >= {warm}"
     return MethodResult(name, True, idx, K, R, ms[0], note=note, cpu_ms_per_frame=ms[1])
-
-
-def fixed_lens_intrinsics(calibrator, H: Array) -> tuple[Array, Array]:
-    """A fixed lens: every frame has the reference K; R from the frame's homography."""
-    from ptz_selfcal.core.geometry import rotation_from_homography
-
-    K = calibrator.reference_K
-    return K, rotation_from_homography(H, K, K)
-
-
-def run_fixed_lens(
-    seq: Sequence, distortion: bool = False, known_pp: bool = False
-) -> tuple[list[MethodResult], Tracking]:
-    """Real sets (a fixed lens): IncrementalCalibrator with a constant-focal model, LM + link BA
-    (with `distortion`, the BA also fits radial distortion). The notes split the CPU time between the
-    photo front end (features, matching, homographies) and the calibration."""
-    from ptz_selfcal.core.incremental import CalibrationState, IncrementalCalibrator
-
-    calibrator: IncrementalCalibrator | None = None
-    published: dict[int, tuple[Array, Array]] = {}
-    calib_cpu = 0.0
-
-    def on_frame(i: int, frame: np.ndarray, scale: float, result) -> None:
-        nonlocal calibrator, calib_cpu
-        if result.H_ref is None:
-            return
-        c0 = time.process_time()
-        if calibrator is None or result.reference_id != calibrator.reference_id:
-            model = FIXED_LENS_KNOWN_PP if known_pp else FIXED_LENS
-            calibrator = make_calibrator(seq, result.reference_id, distortion, model)
-        new = result.state in (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)
-        if new and result.keyframe_id is not None and result.keyframe_id != result.reference_id:
-            state = calibrator.add_keyframe(result.keyframe_id, result.H_ref, i / FPS, matches=result.links)
-            if state is CalibrationState.DEGENERATE_MOTION:
-                calibrator.reoptimise()  # a fixed lens is calibrated by pan-only motion too
-        if calibrator.calibrated:
-            published[i] = fixed_lens_intrinsics(calibrator, result.H_ref)
-        calib_cpu += time.process_time() - c0
-
-    tracking = track_sequence(seq, on_frame)
-    ms = per_frame_ms(tracking, len(seq.frames))
-    n = len(seq.frames)
-    stages = ", ".join(f"{k} {1000.0 * v / n:.0f}" for k, v in tracking.stage_cpu.items())
-    split = (
-        f"CPU/frame: front end {1000.0 * (tracking.cpu_seconds - calib_cpu) / n:.0f} ms ({stages}), "
-        f"calibration {1000.0 * calib_cpu / n:.0f} ms"
-    )
-    name = "ptz_selfcal fixed lens" + (", pp known=centre" if known_pp else "")
-    name += " + radial dist. (BA)" if distortion else " (const f+BA)"
-    rows = [published_row(name, seq, published, ms)]
-    rows[0].note += f"; {split}"
-    final = final_state_row(seq, tracking, calibrator, ms)
-    final.method = f"{name}, final state"
-    return [*rows, final], tracking
 
 
 def final_state_row(
@@ -772,15 +703,15 @@ def final_state_row(
     """Every evaluation frame through the calibrator's final state (O(1) per frame, after the run).
 
     With a lens hook (estimate_distortion) each frame's tracked homography is first corrected with
-    the hook's final distortion estimate, as the node does per frame."""
-    name = "ptz_selfcal online (nodes' tracker+calibrator), final state"
+    the hook's final distortion estimate, as the node does per frame. A fixed lens gives every frame
+    its one K (IncrementalCalibrator.frame_intrinsics with the constant-focal model)."""
+    name = f"{ONLINE}, final state"
     if calibrator is None or not calibrator.calibrated:
         return failed(name, True, "never calibrated")
     idx = np.array(
         [i for i in seq.eval_idx if tracking.H_ref[i] is not None
          and tracking.reference_id[i] == calibrator.reference_id], dtype=np.intp,
     )  # fmt: skip
-    fixed = getattr(calibrator.model, "focal", None) is ParamMode.CONSTANT
     keep, KR = [], []
     for i in idx:
         H = tracking.H_ref[i]
@@ -789,8 +720,7 @@ def final_state_row(
             if H is None:
                 continue
         try:
-            KR.append(fixed_lens_intrinsics(calibrator, H) if fixed
-                      else calibrator.frame_intrinsics(H)[:2])  # fmt: skip
+            KR.append(calibrator.frame_intrinsics(H)[:2])
             keep.append(i)
         except (SelfCalibrationError, np.linalg.LinAlgError, ValueError):
             continue  # the calibrator refuses this frame's homography: no estimate
@@ -884,9 +814,17 @@ def target_lines(rows: list[Row]) -> list[str]:
         ocv = next((r for m, r in group.items() if m.startswith("OpenCV stitching")), None)
         online = [r for r in group.values() if r.online and r.note.startswith("as published")]
         for ours in online:
-            if ocv is None or int(ours.frames.split("/")[0]) == 0:
+            final = group.get(f"{ours.method}, final state")
+            if ocv is None:
                 continue
-            out.append(_target_line(name, ocv, ours, group.get(f"{ours.method}, final state")))
+            if int(ours.frames.split("/")[0]) == 0:
+                if final is not None and np.isfinite(final.f_vs_autostitch):
+                    out.append(
+                        f"{name} [{ours.method}]: no frame published CONVERGED; focal vs AutoStitch "
+                        f"{final.f_vs_autostitch:.2f}% final state (target <= 2%)"
+                    )
+                continue
+            out.append(_target_line(name, ocv, ours, final))
     return out
 
 
@@ -987,9 +925,9 @@ def run_input(
     seq: Sequence, features: str, log: Callable[[str], None], cache: Path | None = None
 ) -> list[Row]:
     online, tracking = run_session(seq)
-    if seq.fixed_focal:
-        for distortion, known_pp in ((False, False), (False, True), (True, False)):
-            online += run_fixed_lens(seq, distortion, known_pp)[0]
+    if seq.fixed_focal:  # a fixed lens: the calibrator node with focal_model:=constant
+        for distortion in (False, True):
+            online += run_session(seq, "constant", distortion)[0]
     log(f"  [{seq.name}] tracked {len(seq.frames)} frames in {tracking.seconds:.1f} s")
     ocv = run_opencv(seq, features, cache)
     log(f"  [{seq.name}] OpenCV: {ocv.ms_per_frame:.0f} ms/frame {ocv.note}")
