@@ -591,3 +591,24 @@ def test_shared_distortion_with_noise_within_its_own_uncertainty() -> None:
     z_lam = (result.info["lam"][0] - lam) / result.info["sigma_lam"][0]
     assert abs(z_f) < 4.0 and abs(z_lam) < 4.0, (z_f, z_lam)
     assert abs(result.focal[0] / K[0, 1, 1] - 1.0) < 0.005
+
+
+def test_lm_on_a_pan_calibrates_a_fixed_lens_and_flags_a_zooming_model() -> None:
+    """Section 6.1 in LM on eq. 22 too: exact homographies of a pure pan (one axis) are enough for
+    constant K with square pixels and zero skew, not for a per-frame focal length."""
+    from ptz_selfcal.core.degeneracy import single_axis_is_degenerate
+    from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+
+    size = (640, 480)
+    K = intrinsic_matrix(600.0, 319.5 + 12.0, 239.5 - 8.0)
+    R = np.array([ptz_rotation(np.radians(6.0 * i), 0.0) for i in range(8)])
+    H = np.array([K @ R[i] @ R[0].T @ np.linalg.inv(K) for i in range(8)])
+    fixed = lm_selfcalibration(H, size, FIXED_LENS)
+    assert fixed.ok and fixed.motion.single_axis and fixed.motion.status == "ok"
+    np.testing.assert_allclose(fixed.K[0], K, atol=1e-6 * 600.0)
+    zooming = lm_selfcalibration(H, size, SQUARE_CONSTANT_PP)
+    assert not zooming.ok and zooming.motion.status == "degenerate_single_axis"
+    assert not single_axis_is_degenerate(FIXED_LENS)
+    assert single_axis_is_degenerate(SQUARE_CONSTANT_PP)
+    assert single_axis_is_degenerate(IntrinsicsModel(focal=ParamMode.CONSTANT, aspect=ParamMode.CONSTANT))
