@@ -44,3 +44,11 @@ def test_no_shared_state_dir_when_the_calibrator_estimates_distortion(tmp_path):
     # calibration without corrected homographies, so the tracker starts a new map after a restart
     data = {"calibrator": {"ros__parameters": {"state_dir": "/a", "estimate_distortion": True}}}
     assert set(_prepared(tmp_path, data)) == {"/**/calibrator"}
+
+
+def test_a_fixed_lens_estimating_distortion_shares_its_state_dir(tmp_path):
+    # focal_model constant keeps its one distortion coefficient in the saved calibration state and
+    # needs no corrected homographies: a restarted tracker may keep its map (and the reference)
+    params = {"state_dir": "/a", "estimate_distortion": True, "focal_model": "constant"}
+    out = _prepared(tmp_path, {"calibrator": {"ros__parameters": params}})
+    assert out["/**/homography_tracker"]["ros__parameters"] == {"state_dir": "/a"}

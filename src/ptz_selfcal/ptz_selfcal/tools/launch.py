@@ -154,7 +154,10 @@ def share_state_dir(data: dict[str, Any]) -> dict[str, Any]:
         # Not with estimate_distortion: the lens correction's state is not persisted, so a tracker that
         # keeps its reference would leave the restored calibration without corrected homographies
         # (K from the zoom model until a reset); a new map re-initialises both (zoom model meanwhile).
-        if not state_dir or params.get("estimate_distortion") is True:
+        # A fixed lens (focal_model constant) saves its one coefficient with the calibration and never
+        # corrects homographies: its tracker keeps the map.
+        lens_hook = params.get("estimate_distortion") is True and params.get("focal_model") != "constant"
+        if not state_dir or lens_hook:
             continue
         tracker_key = (
             f"{prefix}/homography_tracker" if prefix or key.startswith("/") else "homography_tracker"
