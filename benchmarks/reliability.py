@@ -244,39 +244,44 @@ def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:
         sampler = Sampler({n: p.pid for n, p in nodes.items()})
         try:
             feeder.wait_connected()
-            r = rh.tracking_loss_scenario(feeder, 640, 360, warmup=150, window=20, bad=15)
+            disturbances = ("black", "blur", "scene_cut", "preset_90deg", "none", "none", "none")
+            r = rh.tracking_loss_scenario(feeder, 640, 360, warmup=150, window=20, bad=15,
+                                          disturbances=disturbances)  # fmt: skip
             sampler.sample()
             stamps = r["_log"]["stamps"]
             lat = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in stamps if ns in feeder.info_arrival]
             lines += [
                 "",
                 "2. Tracking loss (three node processes, 640x360 rendered views, zoom 1x-2x, disturbances at "
-                "full zoom 2x; each between two passes of the same 20 views)",
+                "full zoom 2x; each between two passes of the same 20 views; then 3 undisturbed passes: the "
+                "control)",
                 f"   frames in {len(stamps)}, frames calibrated (one CameraInfo each) "
                 f"{sum(1 for ns in stamps if len(feeder.infos.get(ns, [])) == 1)}; {sampler.line()}",
                 f"   {latency_line(lat)}",
                 f"   {'disturbance':<14} {'frames':>6}  {'statuses while lost':<34} {'f err lost %':>12} "
                 f"{'before %':>9} {'after %':>8} {'ok<=1.1x':>8} {'recover':>8}",
             ]
-            for name in ("black", "blur", "scene_cut", "preset_90deg"):
+            for name in ("black", "blur", "scene_cut", "preset_90deg", "none", "none_2", "none_3"):
                 x = r[name]
                 counts: dict[str, int] = {}
                 for s in x["statuses"]:
                     counts[s] = counts.get(s, 0) + 1
-                text = ", ".join(f"{k} {v}" for k, v in counts.items())
-                ok = x["after"] <= 1.1 * x["before"] + rh.SLACK
+                text = ", ".join(f"{k} {v}" for k, v in counts.items()) or "-"
+                ok = x["after"] <= 1.1 * x["before"]
+                lost_max = f"{100 * max(x['errors']):>12.3f}" if x["errors"] else f"{'-':>12}"
                 rec = (
                     f"{x['recovery_frames']} fr/{x['recovery_s'] * 1e3:.0f} ms"
                     if x["recovery_frames"] is not None
                     else "never"
                 )
                 lines.append(
-                    f"   {name:<14} {x['frames']:>6}  {text:<34} {100 * max(x['errors']):>12.3f} "
+                    f"   {name:<14} {x['frames']:>6}  {text:<34} {lost_max} "
                     f"{100 * x['before']:>9.4f} {100 * x['after']:>8.4f} {'yes' if ok else 'NO':>8} {rec:>8}"
                 )
             lines.append(
-                "   (ok: median focal error on the views after recovery <= 1.1 x before + 0.02 % absolute; "
-                "recover: frames of the returning view until calibrated again, and time from its first frame)"
+                "   (ok: median focal error on the views after recovery <= 1.1 x before, strictly; none: the "
+                "same views again without a disturbance (drift over passes); recover: frames of the returning"
+                " view until calibrated again, and time from its first frame)"
             )
         finally:
             feeder.close()
@@ -291,7 +296,7 @@ def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:
             after: dict[str, int] = {}
             for s in z["after_statuses"]:
                 after[s] = after.get(s, 0) + 1
-            ok = z["after"] <= 1.1 * z["before"] + rh.SLACK
+            ok = z["after"] <= 1.1 * z["before"]
             lines += [
                 "   sharp preset recall panning 9 deg/frame while zooming 1x -> 2.5x (past the learned zoom "
                 f"range), hold, back: {len(z['moving_statuses'])} frames moving {counts}, focal error while "

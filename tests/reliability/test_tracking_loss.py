@@ -3,8 +3,9 @@ ground truth): black frames, heavy blur, a scene cut and a fast 90 degree preset
 a sharp preset recall panning 9 deg/frame while zooming 1x -> 2.5x over a repetitive facade and back.
 
 CameraInfo keeps coming for every frame (from the zoom model while lost), tracking relocalises when the
-view comes back, and the calibration after recovery is as good as before (focal error on the same views
-within 10 % of its value before, plus 0.02 % absolute for the tracker's per-frame noise).
+view comes back, and the calibration after recovery is as good as before (median focal error on the same
+views within 10 % of its value before: the tracker tracks views it has seen against the keyframes it made
+then, so the calibration does not drift pass after pass).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import reliability_harness as rh
 
 ROS_DOMAIN_ID = 175
 W, H = 640, 360
-SLACK = 2e-4  # absolute slack on the focal error comparison (0.02 %, the per-frame noise of tracking)
 
 
 # First in the module: its graph runs before the shared one of loss_results starts (6 node processes
@@ -31,7 +31,7 @@ def test_fast_zooming_preset_recall_does_not_corrupt_the_calibration(ros_env, st
         # while moving: K from the zoom model or a good homography, never a wildly wrong one
         assert max(r["moving_errors"]) < 0.05, [round(e, 3) for e in r["moving_errors"]]
         assert set(r["after_statuses"][-16:]) <= rh.CALIBRATED, r["after_statuses"]
-        assert r["after"] <= 1.1 * r["before"] + SLACK, (r["before"], r["after"])
+        assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
     finally:
         feeder.close()
 
@@ -100,7 +100,7 @@ def test_lost_view_predicted_from_zoom_then_relocalised_uncorrupted(loss_results
     assert max(r["errors"]) < 0.05, r["errors"]
     # relocalised within the first frames of the returning view, and the calibration is not corrupted
     assert r["recovery_frames"] is not None and r["recovery_frames"] <= 3, r["after_statuses"]
-    assert r["after"] <= 1.1 * r["before"] + SLACK, (r["before"], r["after"])
+    assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
 
 
 def test_preset_move_predicted_from_zoom_then_relocalised_uncorrupted(loss_results):
@@ -110,4 +110,4 @@ def test_preset_move_predicted_from_zoom_then_relocalised_uncorrupted(loss_resul
     assert "PREDICTED_FROM_ZOOM" in r["statuses"]
     assert max(r["errors"]) < 0.05, r["errors"]
     assert r["recovery_frames"] is not None and r["recovery_frames"] <= 3, r["after_statuses"]
-    assert r["after"] <= 1.1 * r["before"] + SLACK, (r["before"], r["after"])
+    assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
