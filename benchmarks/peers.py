@@ -42,11 +42,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import opencv_peer
 
 from ptz_selfcal.core import metrics
-from ptz_selfcal.core.features import (
-    robust_homography,
-    usac_params,
-)
-from ptz_selfcal.core.geometry import homography_work_to_full
 from ptz_selfcal.core.intrinsics import (
     IntrinsicsModel,
     ParamMode,
@@ -54,11 +49,9 @@ from ptz_selfcal.core.intrinsics import (
     image_centre,
     rotations_from_homographies,
 )
+from ptz_selfcal.core.stills import StillsConfig, StillsTracker
 from ptz_selfcal.core.tracker import (
     HomographyTracker,
-    KeyframeLink,
-    TrackingState,
-    TrackResult,
 )
 
 Array = NDArray[np.float64]
@@ -260,7 +253,7 @@ class Tracking:
     seconds: float
     results: list = field(default_factory=list)
     cpu_seconds: float = float("nan")
-    stage_cpu: dict[str, float] = field(default_factory=dict)  # PhotoTracker's CPU seconds per stage
+    stage_cpu: dict[str, float] = field(default_factory=dict)  # StillsTracker's CPU seconds per stage
 
 
 def working_scale(size: tuple[int, int]) -> float:
@@ -275,74 +268,13 @@ def to_working(image: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(image, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
 
 
-class PhotoTracker:
-    """Front-end for photographs (the real sets; HomographyTracker's KLT expects video): ORB matches and
-    MAGSAC + LM homographies (core.features) from every new image to every earlier one, as OpenCV's
-    matcher does; H_ref chains through the best-matched earlier image and every successful match is a
-    keyframe link (closing the loop of a 360 degree set for the bundle adjustment). Same TrackResult
-    as HomographyTracker; every image is a keyframe. The `cpu` counters split its time per stage."""
-
-    def __init__(
-        self, n_features: int = 2000, ratio: float = 0.8, threshold: float = 2.0, min_inliers: int = 20
-    ):
-        self._orb = cv2.ORB_create(nfeatures=n_features)
-        self._ratio = ratio
-        self._threshold = threshold
-        self._min_inliers = min_inliers
-        self._seen: list[tuple[int, tuple, Array]] = []  # (frame index, (points, descriptors), H_ref)
-        self._index = -1
-        self.cpu = {"detect": 0.0, "match": 0.0, "fit": 0.0}  # process CPU seconds per stage
-
-    def _link(self, j: int, prev: tuple, desc: tuple, i: int, scale: float) -> KeyframeLink | None:
-        c0 = time.process_time()
-        a, b = ratio_matches(prev, desc, self._ratio)
-        c1 = time.process_time()
-        fit = robust_homography(
-            a, b, usac_params(self._threshold * scale, 0, 2000, 0.999), self._min_inliers, 20
-        )
-        self.cpu["match"] += c1 - c0
-        self.cpu["fit"] += time.process_time() - c1
-        if fit is None:
-            return None
-        pa = (np.asarray(a, float)[fit.inliers] + 0.5) / scale - 0.5
-        pb = (np.asarray(b, float)[fit.inliers] + 0.5) / scale - 0.5
-        return KeyframeLink(j, i, homography_work_to_full(fit.H, scale), pa, pb, fit.rms / scale)
-
-    def track(self, image: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
-        self._index += 1
-        i = self._index
-        c0 = time.process_time()
-        keypoints, descriptors = self._orb.detectAndCompute(image, None)
-        self.cpu["detect"] += time.process_time() - c0
-        desc = (np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2), descriptors)
-        if not self._seen:
-            self._seen.append((i, desc, np.eye(3)))
-            return TrackResult(TrackingState.NEW_KEYFRAME, i, stamp, np.eye(3), np.eye(3), i, 0, 0, 0, 0.0)
-        links = [(link, H_j) for j, prev, H_j in self._seen if (link := self._link(j, prev, desc, i, scale))]
-        if not links:
-            return TrackResult(TrackingState.TRACKING_LOST, i, stamp, None, None, None, 0, 0, 0, np.nan)
-        best, H_best = max(links, key=lambda lh: (lh[0].source_id == i - 1, lh[0].inlier_count))
-        H_ref = best.H @ H_best
-        self._seen.append((i, desc, H_ref))
-        n_in, rms = best.inlier_count, best.rms_transfer_error
-        result = (TrackingState.NEW_KEYFRAME, i, stamp, H_ref, best.H, i, 0, n_in, n_in, rms)
-        return TrackResult(*result, tuple(link for link, _ in links))
-
-
-def ratio_matches(a: tuple, b: tuple, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points of a and b whose ORB descriptors are nearest neighbours passing Lowe's ratio test."""
-    if a[1] is None or b[1] is None or len(a[0]) < 2 or len(b[0]) < 2:
-        return np.empty((0, 2), np.float32), np.empty((0, 2), np.float32)
-    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a[1], b[1], k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
-    ia = np.array([m.queryIdx for m in good], np.intp)
-    ib = np.array([m.trainIdx for m in good], np.intp)
-    return a[0][ia], b[0][ib]
+# The real sets' front end (core/stills.py: which stills to match, features detected once per still).
+STILLS = StillsConfig()
 
 
 def track_sequence(seq: Sequence, on_frame: Callable | None = None) -> Tracking:
     """Feed every frame to the tracker; on_frame(i, image, scale, result) runs inside the timing."""
-    tracker = PhotoTracker() if seq.fixed_focal else HomographyTracker()
+    tracker = StillsTracker(STILLS) if seq.fixed_focal else HomographyTracker()
     scale = working_scale(seq.size)
     H_ref: list[Array | None] = []
     refs: list[int | None] = []
