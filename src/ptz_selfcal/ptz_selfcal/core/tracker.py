@@ -328,10 +328,11 @@ class HomographyTracker:
         H_ref = H_keyframe @ keyframe.H_ref
         inlier_count = int(fit.inliers.sum())
         if self._needs_keyframe(fit.H, inlier_count, image.shape):
-            revisited = self._revisit(image, stamp, keyframe, H_ref, match_count)
+            corners = self._detect(image)
+            revisited = self._revisit(image, stamp, keyframe, H_ref, match_count, corners)
             if revisited is not None:
                 return revisited
-            return self._new_keyframe(image, stamp, keyframe, fit, match_count)
+            return self._new_keyframe(image, stamp, keyframe, fit, match_count, corners)
         return TrackResult(
             state=TrackingState.TRACKING, frame_index=self._frame_index, stamp=stamp,
             H_ref=H_ref, H_keyframe=H_keyframe, keyframe_id=keyframe.id, reference_id=self._reference_id,
@@ -454,10 +455,16 @@ class HomographyTracker:
         )  # fmt: skip
 
     def _new_keyframe(
-        self, image: np.ndarray, stamp: float | None, parent: Keyframe, fit: RobustFit, match_count: int
+        self,
+        image: np.ndarray,
+        stamp: float | None,
+        parent: Keyframe,
+        fit: RobustFit,
+        match_count: int,
+        corners: Points | None = None,
     ) -> TrackResult:
         """Make the current frame a keyframe linked to its parent and to older overlapping keyframes."""
-        corners = self._detect(image)
+        corners = self._detect(image) if corners is None else corners
         if len(corners) < self.config.textured_min_corners:
             # Too little texture left to start new tracks: keep the old keyframe while tracks last.
             H_keyframe = homography_work_to_full(fit.H, self._scale)
@@ -480,7 +487,13 @@ class HomographyTracker:
         return self._commit_keyframe(image, stamp, corners, links, TrackingState.NEW_KEYFRAME, match_count)
 
     def _revisit(
-        self, image: np.ndarray, stamp: float | None, current: Keyframe, H_ref: Array, match_count: int
+        self,
+        image: np.ndarray,
+        stamp: float | None,
+        current: Keyframe,
+        H_ref: Array,
+        match_count: int,
+        corners: Points,
     ) -> TrackResult | None:
         """Go on tracking against a stored keyframe that covers at least revisit_min_overlap of the frame
         (predicted through the chain; the fewest hops to the reference, then the largest overlap),
@@ -509,7 +522,6 @@ class HomographyTracker:
         if best is None:
             return None
         _, kf, H_chain = best
-        corners = self._detect(image)
         linked = self._link(kf, image, corners, H_chain, rematch=False, hops=current.depth + 1 + kf.depth)
         if linked is None:
             return None
