@@ -444,7 +444,7 @@ class KeyframeBundleSolver:
         )
         if (
             lam0 is not None
-            and (result.ok or _uncertain_motion(result))
+            and (result.ok or (shared and _uncertain_motion(result)))
             and np.all(np.isfinite(result.info["lam"]))
         ):
             self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
