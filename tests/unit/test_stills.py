@@ -185,6 +185,10 @@ def test_overlap_fractions():
     R180 /= np.cbrt(np.linalg.det(R180))
     got = overlap_fractions(np.array([np.eye(3), half, R180]), size, size, 8)
     np.testing.assert_allclose(got, [1.0, 0.5, 0.0])
+    # One size per old still: a still twice as wide overlaps the new one by half under the identity.
+    sizes = np.array([[320.0, 240.0], [640.0, 240.0], [160.0, 120.0]])
+    got = overlap_fractions(np.repeat(np.eye(3)[None], 3, axis=0), sizes, size, 8)
+    np.testing.assert_allclose(got, [1.0, 0.5, 1.0])
 
 
 def test_link_and_path_rotations_compose_along_the_fewest_links():

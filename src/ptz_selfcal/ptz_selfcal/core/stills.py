@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.core.features import Descriptors, robust_homography, usac_params
 from ptz_selfcal.core.geometry import apply_homography
@@ -224,7 +224,8 @@ class StillsTracker:
         c0 = time.process_time()
         focals, H, hops = self.predict(new, chain)
         H = H[:, rest]
-        overlap = overlap_fractions(H.reshape(-1, 3, 3), self._stills[0].size, new.size, cfg.grid)
+        sizes = np.tile([self._stills[k].size for k in rest], (len(focals), 1))
+        overlap = overlap_fractions(H.reshape(-1, 3, 3), sizes, new.size, cfg.grid)
         overlap = overlap.reshape(len(focals), len(rest))
         mid = len(focals) // 2
         near = hops[rest] < cfg.uncertain_hops
@@ -393,15 +394,13 @@ def _unit_det_batch(H: Array) -> Array:
     return H / np.cbrt(np.linalg.det(H))[:, None, None]
 
 
-def overlap_fractions(
-    H: Array, size_old: tuple[float, float], size_new: tuple[float, float], grid: int
-) -> Array:
-    """(n,) fraction of a grid over each old still that H (old -> new, unit determinant) maps in front of
-    the new camera and inside its image."""
-    w, h = size_old
+def overlap_fractions(H: Array, size_old: ArrayLike, size_new: tuple[float, float], grid: int) -> Array:
+    """(n,) fraction of a grid over each old still (size_old: one (w, h) or one per still) that H
+    (old -> new, unit determinant) maps in front of the new camera and inside its image."""
+    size = np.broadcast_to(np.asarray(size_old, float), (len(H), 2))
     centres = (np.arange(grid) + 0.5) / grid  # cell centres: no point on the image border
-    gx, gy = np.meshgrid(centres * w - 0.5, centres * h - 0.5)
-    pts = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)])  # (3, m)
+    gx, gy = (g.ravel() for g in np.meshgrid(centres, centres))
+    pts = np.stack([gx * size[:, :1] - 0.5, gy * size[:, 1:] - 0.5, np.ones((len(H), gx.size))], axis=1)
     proj = H @ pts  # (n, 3, m)
     z = proj[:, 2]
     front = z > 1e-9
