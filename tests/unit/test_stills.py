@@ -212,3 +212,11 @@ def test_link_and_path_rotations_compose_along_the_fewest_links():
     np.testing.assert_array_equal(hops, [1, 2, 3, 2, 1, 0])  # still 2 is 3 links away either way
     for k in range(6):
         np.testing.assert_allclose(R_path[1, k], R[k] @ R[5].T, atol=1e-9)
+
+
+def test_exact_neighbours_when_the_lsh_index_misses(stills):
+    images, _ = stills
+    coarse = replace(StillsConfig(), lsh=(1, 30, 0))  # one table of 30-bit keys: almost no collisions
+    tracker, results = track(images[:6], coarse)
+    assert all(r.state is TrackingState.NEW_KEYFRAME for r in results)
+    assert tracker.attempts >= 2 * 5  # every chaining pair went to brute force after the index

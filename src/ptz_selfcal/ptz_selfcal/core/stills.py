@@ -52,6 +52,7 @@ class StillsConfig:
     max_width: int | None = None  # detect at most this wide (None: as given)
     ratio: float = 0.8  # Lowe's ratio test
     matcher: str = "lsh"  # "lsh" (FLANN LSH index per still, seeded) or "bf" (brute-force Hamming)
+    lsh: tuple[int, int, int] = (6, 16, 1)  # LSH hash tables, key bits, multi-probe level
     threshold: float = 2.0  # MAGSAC inlier threshold, full-resolution pixels
     max_iterations: int = 2000
     min_inliers: int = 20
@@ -169,7 +170,7 @@ class StillsTracker:
     def _add(self, still: Still, links: list[KeyframeLink]) -> None:
         if self.config.matcher == "lsh" and still.features.descriptors is not None:
             c0 = time.process_time()
-            still.index = lsh_index(still.features.descriptors)
+            still.index = lsh_index(still.features.descriptors, *self.config.lsh)
             self.cpu["match"] += time.process_time() - c0
         self._stills.append(still)
         position = {s.id: k for k, s in enumerate(self._stills)}
@@ -188,6 +189,8 @@ class StillsTracker:
         for still in candidates:
             tried.add(still.id)
             pair = self._match(still, new, None)
+            if pair is None and still.index is not None:  # LSH missed: exact neighbours before giving up
+                pair = self._match(still, new, None, exact=True)
             if pair is not None:
                 return pair, still
         return None
@@ -246,7 +249,7 @@ class StillsTracker:
                 links.append(pair.link)
         return links
 
-    def _match(self, old: Still, new: Still, H_pred: Array | None) -> _Pair | None:
+    def _match(self, old: Still, new: Still, H_pred: Array | None, exact: bool = False) -> _Pair | None:
         """Ratio-test matches old -> new (only new features predicted inside old with H_pred), robust
         homography; None when it fails or disagrees with the prediction."""
         cfg = self.config
@@ -258,7 +261,7 @@ class StillsTracker:
                 np.linalg.inv(H_pred), new.features.points, old.size, cfg.margin * old.size[0]
             )
             query = query[inside]
-        ia, ib = ratio_match(old, new.features, query, cfg.ratio)
+        ia, ib = ratio_match(old, new.features, query, cfg.ratio, exact)
         c1 = time.process_time()
         self.cpu["match"] += c1 - c0
         if len(ia) < cfg.min_inliers:
@@ -283,27 +286,31 @@ class StillsTracker:
 # --------------------------------------------------------------------------------------------------
 # Helpers (vectorised over stills / points)
 # --------------------------------------------------------------------------------------------------
-def lsh_index(descriptors: np.ndarray, seed: int = 0) -> cv2.FlannBasedMatcher:
+def lsh_index(
+    descriptors: np.ndarray, tables: int = 6, key_bits: int = 12, probe: int = 1, seed: int = 0
+) -> cv2.FlannBasedMatcher:
     """A FLANN LSH index over one still's binary descriptors (built once per still). Its hash tables
     are drawn from OpenCV's global RNG, seeded here so every run matches the same."""
     cv2.setRNGSeed(seed)
-    index = cv2.FlannBasedMatcher(
-        {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}, {"checks": 32}
-    )
+    params = {"algorithm": 6, "table_number": tables, "key_size": key_bits, "multi_probe_level": probe}
+    index = cv2.FlannBasedMatcher(params, {"checks": 32})
     index.add([descriptors])
     index.train()
     return index
 
 
-def ratio_match(old: Still, new: Descriptors, query: IntArray, ratio: float) -> tuple[IntArray, IntArray]:
+def ratio_match(
+    old: Still, new: Descriptors, query: IntArray, ratio: float, exact: bool = False
+) -> tuple[IntArray, IntArray]:
     """Indices (in old, in new) of the new still's `query` features whose nearest neighbour among the
-    old still's descriptors passes Lowe's ratio test."""
+    old still's descriptors passes Lowe's ratio test: through the old still's LSH index when it has
+    one (approximate neighbours) unless `exact` (brute force)."""
     empty = np.empty(0, np.intp), np.empty(0, np.intp)
     train = old.features.descriptors
     if train is None or new.descriptors is None or len(train) < 2 or len(query) < 2:
         return empty
     desc = new.descriptors[query]
-    if old.index is not None:
+    if old.index is not None and not exact:
         pairs = old.index.knnMatch(desc, k=2)
     else:
         pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(desc, train, k=2)
