@@ -512,7 +512,7 @@ def session_config(focal_model: str = "varying", fixed_lens_distortion: bool = F
 
 
 def run_session(
-    seq: Sequence, focal_model: str = "varying", distortion: bool = False
+    seq: Sequence, focal_model: str = "varying", distortion: bool | None = None
 ) -> tuple[list[MethodResult], Tracking]:
     """Frames one by one as the nodes run them: tracker -> CalibratorSession (the calibrator node's
     logic: IncrementalCalibrator, LM + keyframe MAP bundle adjustment), whose worker step runs inline
@@ -522,13 +522,15 @@ def run_session(
     a fixed lens). `distortion` is estimate_distortion:=true: for a varying focal length
     core/lens_correction.SessionLensHook in front of the session exactly as nodes/calibrator.py wires it
     (homographies corrected per frame, keyframe matches through the hook, its `work` after every session
-    step, D from its plumb_bob fit); for a fixed lens one coefficient in the session's adjustment.
+    step, D from its plumb_bob fit); for a fixed lens one coefficient in the session's adjustment;
+    None: as the product is configured for the input (estimate_distortion for a distorted lens).
     "As published" counts the frames the product published as CONVERGED (DESIGN.md 4: the statuses
     before it say the calibration is not yet to be taken)."""
     from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput
     from ptz_selfcal.core.lens_correction import SessionLensHook
 
     fixed = focal_model == "constant"
+    distortion = seq.distorted if distortion is None else distortion
     config = session_config(focal_model, fixed and distortion)
     session = CalibratorSession(config)
     lens = SessionLensHook(config.nominal_focal) if distortion and not fixed else None
