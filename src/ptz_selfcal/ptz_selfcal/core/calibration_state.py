@@ -457,7 +457,13 @@ class KeyframeBundleSolver:
                 lam={ids[j]: float(lam) for j, lam in zip(keep, result.info["lam"]) if ids[j] is not None},
                 focal={ids[j]: float(K[1, 1]) for j, K in zip(keep, result.K) if ids[j] is not None},
             )
-        if fixed and (result.ok or _uncertain_motion(result)):
+        rel_sigma = float(np.ravel(result.sigma_f)[0]) / float(result.K[0, 1, 1])
+        if (
+            fixed
+            and (result.ok or _uncertain_motion(result))
+            and rel_sigma <= self.config.converged_max_sigma_f
+        ):
+            # only when it can decide (above that sigma the solution is not CONVERGED anyway)
             self.lens_model_change = self._lens_model_change(pairs, result, image_size, model, prior, noise)
         if absent or len(lm.K) > n_frames:
             # the frames left out: LM's focal length and rotation, the adjusted principal point
