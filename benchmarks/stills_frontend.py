@@ -40,11 +40,11 @@ CONFIGS: dict[str, StillsConfig] = {
     "chosen pairs, ORB 1000 x3, BF": replace(DEFAULT, matcher="bf"),
     "chosen pairs, ORB 1000 x3, LSH 6x12 bits": replace(DEFAULT, lsh=(6, 12, 1)),
     "chosen pairs, ORB 1000 x3, LSH 4x12 bits": replace(DEFAULT, lsh=(4, 12, 1)),
-    "chosen pairs, ORB 1000 x3, LSH 6x16 (default)": DEFAULT,
+    "chosen, ORB 1000 x3, LSH 6x16 (default)": DEFAULT,
     "chosen pairs, ORB 1000 x2, LSH 6x16": replace(DEFAULT, orb_levels=2),
     "chosen pairs, ORB 1500 x3, LSH 6x16": replace(DEFAULT, n_features=1500),
     "chosen pairs, ORB 700 x3, LSH 6x16": replace(DEFAULT, n_features=700),
-    "chosen pairs, ORB 1000 x3, LSH 6x16, 320 px": replace(DEFAULT, max_width=320),
+    "chosen pairs, ORB 1000 x3, LSH, 320 px": replace(DEFAULT, max_width=320),
     "previous still only (no loop closure)": replace(DEFAULT, max_links=0, max_uncertain=0),
 }
 
