@@ -257,10 +257,11 @@ class KeyframeBundleSolver:
     lens.lam_guess(keyframe_id, f); a frame's virtual correspondences (its homography is on corrected
     pixels) are distorted back with the lens model that corrected it, lens.distort(keyframe_id, pts),
     so that they stand for the raw points and carry no assumption about the distortion centre.
-    The prior of eq. 27 is weighed with the image noise of the previous such solve (its residual
-    standard deviation, at most ba_noise_sigma_px): matches of raw points fit to ~0.05 px, and a prior
-    weighed for 1 px noise would act as a ~1 px prior that holds the principal point at the image
-    centre. `lens_estimate` keeps the last such solution for the hook. Keyframe id None = the reference.
+    The prior of eq. 27 is weighed with the image noise of the previous accepted solve (its residual
+    standard deviation, within [0.02, ba_noise_sigma_px]), with or without distortion: tracked matches
+    fit to ~0.05-0.15 px, and a prior weighed for the printed 1 px noise acts as a ~10x too strong
+    prior that pulls the principal point (and, near the ambiguity of a long focal length, f) to the
+    image centre. `lens_estimate` keeps the last such solution for the hook. Keyframe id None = the reference.
     """
 
     def __init__(self, config: SessionConfig, matches: OrderedDict[tuple[int, int], KeyframeMatchSet]):
@@ -273,7 +274,7 @@ class KeyframeBundleSolver:
         self.sigma_f: dict[Any, float] = {}  # keyframe id -> 1-sigma of f in the last accepted solve
         self.lens: Any = None  # lam_guess(keyframe_id, f), distort(keyframe_id, pts); None: undistorted
         self.lens_estimate: LensEstimate | None = None
-        self.noise_estimate: float | None = None  # px, residual sigma of the last distortion solve
+        self.noise_estimate: float | None = None  # px, residual sigma of the last accepted solve
         self.distortion_mode = "curve"  # lam per frame on a lam(f) curve ("curve") or free ("frame")
         # a fixed lens with estimate_distortion: the one division coefficient and its 1-sigma
         self.shared_lam: float | None = None
@@ -423,7 +424,7 @@ class KeyframeBundleSolver:
         sigma = self.config.pp_prior_sigma_px
         prior = (np.array(image_centre(image_size)), np.array([sigma, sigma]))
         noise = self.config.ba_noise_sigma_px
-        if lam0 is not None and self.noise_estimate is not None:
+        if self.noise_estimate is not None:  # eq. 27 weighed with the measured image noise
             noise = min(max(self.noise_estimate, 0.02), noise)
         keep = np.array([j for j in range(len(lm.K)) if j not in set(absent)], dtype=np.intp)
         renumber = np.full(len(lm.K), -1, dtype=np.intp)
@@ -457,6 +458,8 @@ class KeyframeBundleSolver:
                 lam={ids[j]: float(lam) for j, lam in zip(keep, result.info["lam"]) if ids[j] is not None},
                 focal={ids[j]: float(K[1, 1]) for j, K in zip(keep, result.K) if ids[j] is not None},
             )
+        if lam0 is None and result.ok:
+            self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
         rel_sigma = float(np.ravel(result.sigma_f)[0]) / float(result.K[0, 1, 1])
         if (
             fixed
