@@ -23,6 +23,7 @@ from ptz_selfcal.core.stills import (
     _Edge,
     linear_focal,
     link_rotations,
+    lsh_index,
     overlap_fractions,
     path_rotations,
     points_inside,
@@ -133,16 +134,30 @@ def test_without_loop_candidates_only_consecutive_links(stills):
 
 def test_lost_still_is_skipped_and_the_next_chains_to_the_one_before(stills):
     images, R = stills
-    blank = np.full_like(images[0], 128)
-    sequence = [*images[:5], blank, *images[5:8]]  # the blank is frame 5; still 5 of the pan is frame 6
+    blank = np.full_like(images[0], 128)  # no feature at all
+    noise = np.random.default_rng(1).integers(0, 256, images[0].shape, np.uint8)  # features, no match
+    sequence = [*images[:5], blank, noise, *images[5:8]]  # still 5 of the pan is frame 7
     tracker, results = track(sequence)
-    assert results[5].state is TrackingState.TRACKING_LOST and results[5].H_ref is None
-    assert results[6].state is TrackingState.NEW_KEYFRAME
-    chain = next(k for k in results[6].links if k.source_id == 4)  # the stored still before the blank
-    np.testing.assert_array_equal(results[6].H_keyframe, chain.H)
-    H = true_h(R, 4, 5)  # frame 4 -> frame 6 (stills 4 and 5 of the pan)
+    assert results[5].state is TrackingState.TEXTURELESS and results[5].H_ref is None
+    assert results[6].state is TrackingState.TRACKING_LOST and results[6].H_ref is None
+    assert results[5].reference_id == results[6].reference_id == 0
+    assert results[7].state is TrackingState.NEW_KEYFRAME
+    chain = next(k for k in results[7].links if k.source_id == 4)  # the stored still before the blank
+    np.testing.assert_array_equal(results[7].H_keyframe, chain.H)
+    H = true_h(R, 4, 5)  # frame 4 -> frame 7 (stills 4 and 5 of the pan)
     assert np.max(transfer_error(chain.H, H, overlap_points(H))) < 3.0
-    assert [s.id for s in tracker.stills] == [0, 1, 2, 3, 4, 6, 7, 8]
+    assert [s.id for s in tracker.stills] == [0, 1, 2, 3, 4, 7, 8, 9]
+
+
+def test_a_blank_first_still_is_not_the_reference(stills):
+    """A lens cap or a dark first shot: TEXTURELESS and forgotten; the first still with features is the
+    reference the others chain to (a featureless reference would leave every later still lost)."""
+    images, _ = stills
+    tracker, results = track([np.zeros_like(images[0]), *images[:3]])
+    assert results[0].state is TrackingState.TEXTURELESS and results[0].reference_id is None
+    assert [r.state for r in results[1:]] == [TrackingState.NEW_KEYFRAME] * 3
+    assert all(r.reference_id == 1 for r in results[1:])
+    assert [s.id for s in tracker.stills] == [1, 2, 3]
 
 
 def test_exhaustive_matches_every_pair(stills):
@@ -212,6 +227,38 @@ def test_link_and_path_rotations_compose_along_the_fewest_links():
     np.testing.assert_array_equal(hops, [1, 2, 3, 2, 1, 0])  # still 2 is 3 links away either way
     for k in range(6):
         np.testing.assert_allclose(R_path[1, k], R[k] @ R[5].T, atol=1e-9)
+
+
+def test_lsh_index_is_deterministic_and_leaves_the_callers_opencv_rng_alone():
+    """The index's hash tables come from OpenCV's RNG: the same whatever state the caller's RNG is in,
+    and building one does not reseed the caller's (a library must not change its caller's global
+    state: cv2.randu / randShuffle draws of the application stay what they were)."""
+    rng = np.random.default_rng(4)
+    train = rng.integers(0, 256, (400, 32), np.uint8)
+    query = np.clip(train[:200].astype(int) ^ (rng.random((200, 32)) < 0.02) * 255, 0, 255)
+    query = query.astype(np.uint8)
+
+    def draws() -> np.ndarray:
+        out = np.zeros(8, np.float32)
+        cv2.randu(out, 0.0, 1.0)
+        return out
+
+    cv2.setRNGSeed(1234)
+    expected = draws()
+    matches = []
+    for caller_seed in (1234, 99):
+        cv2.setRNGSeed(caller_seed)
+        index = lsh_index(train, 6, 16, 1, seed=0)
+        if caller_seed == 1234:
+            np.testing.assert_array_equal(draws(), expected)  # the caller's sequence goes on unchanged
+        matches.append([(m.queryIdx, m.trainIdx) for p in index.knnMatch(query, k=2) for m in p])
+    assert matches[0] == matches[1] and len(matches[0]) > 100
+
+
+def test_config_is_validated():
+    for bad in ({"matcher": "flann"}, {"focal_samples": 4}, {"min_inliers": 3}):
+        with pytest.raises(ValueError):
+            StillsConfig(**bad)
 
 
 def test_exact_neighbours_when_the_lsh_index_misses(stills):

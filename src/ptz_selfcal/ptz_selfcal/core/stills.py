@@ -27,6 +27,7 @@ still is a keyframe. Same TrackResult interface as HomographyTracker, ids are st
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -68,6 +69,14 @@ class StillsConfig:
     uncertain_hops: int = 5  # stills this many links away are predicted over the focal range
     rotation_points: int = 20  # inlier rays per link for its rotation
     exhaustive: bool = False  # match every earlier still instead (the reference the choice is measured by)
+
+    def __post_init__(self) -> None:
+        if self.matcher not in ("lsh", "bf"):
+            raise ValueError(f"matcher must be 'lsh' or 'bf', not {self.matcher!r}")
+        if self.focal_samples < 1 or self.focal_samples % 2 == 0:
+            raise ValueError(f"focal_samples must be odd and >= 1, not {self.focal_samples}")
+        if self.min_inliers < 4 or self.rotation_points < 2:  # a homography needs 4 points
+            raise ValueError("min_inliers must be >= 4 and rotation_points >= 2")
 
 
 @dataclass(eq=False)
@@ -133,7 +142,8 @@ class StillsTracker:
 
     def track(self, image: np.ndarray, scale: float, stamp: float | None = None) -> TrackResult:
         """One still (working resolution, `scale` = working / full). Returns a NEW_KEYFRAME result with
-        its links, or TRACKING_LOST when no earlier still matches (the still is then forgotten)."""
+        its links, TRACKING_LOST when no earlier still matches or TEXTURELESS when it has fewer than
+        min_inliers features (the still is then forgotten: a blank first still is no reference)."""
         self._index += 1
         i = self._index
         c0 = time.process_time()
@@ -141,6 +151,11 @@ class StillsTracker:
         size = (image.shape[1] / scale, image.shape[0] / scale)
         self.cpu["detect"] += time.process_time() - c0
         new = Still(i, features, size, np.eye(3))
+        if len(features.points) < self.config.min_inliers:
+            # a blank, dark or blurred still: nothing to match it by, and not a reference for the rest
+            return TrackResult(
+                TrackingState.TEXTURELESS, i, stamp, None, None, None, self._reference, 0, 0, np.nan
+            )
         if not self._stills:
             self._add(new, [])
             self._reference = i
@@ -154,7 +169,9 @@ class StillsTracker:
             if chain is None:  # relocalise: every other earlier still, newest first
                 chain = self._chain(new, [s for s in self._stills[::-1] if s.id not in tried], tried)
         if chain is None:
-            return TrackResult(TrackingState.TRACKING_LOST, i, stamp, None, None, None, 0, 0, 0, np.nan)
+            return TrackResult(
+                TrackingState.TRACKING_LOST, i, stamp, None, None, None, self._reference, 0, 0, np.nan
+            )
         pair, source = chain
         new.H_ref = _unit_det(pair.link.H @ source.H_ref)
         if self.config.exhaustive:
@@ -289,14 +306,29 @@ class StillsTracker:
 def lsh_index(
     descriptors: np.ndarray, tables: int = 6, key_bits: int = 12, probe: int = 1, seed: int = 0
 ) -> cv2.FlannBasedMatcher:
-    """A FLANN LSH index over one still's binary descriptors (built once per still). Its hash tables
-    are drawn from OpenCV's global RNG, seeded here so every run matches the same."""
-    cv2.setRNGSeed(seed)
+    """A FLANN LSH index over one still's binary descriptors (built once per still), the same on every
+    run. FLANN draws the hash tables' bits from OpenCV's RNG (cv::theRNG), which has no seed parameter
+    and whose state the Python API can set but not read back; it is per thread, so the index is built
+    on a short-lived thread of its own seeded with `seed`: the caller's OpenCV RNG is left untouched."""
     params = {"algorithm": 6, "table_number": tables, "key_size": key_bits, "multi_probe_level": probe}
-    index = cv2.FlannBasedMatcher(params, {"checks": 32})
-    index.add([descriptors])
-    index.train()
-    return index
+    built: list[cv2.FlannBasedMatcher | BaseException] = []
+
+    def build() -> None:
+        try:
+            cv2.setRNGSeed(seed)  # this thread's RNG only
+            index = cv2.FlannBasedMatcher(params, {"checks": 32})
+            index.add([descriptors])
+            index.train()  # the tables are drawn here; queries draw nothing
+            built.append(index)
+        except BaseException as exc:  # re-raised on the caller's thread
+            built.append(exc)
+
+    thread = threading.Thread(target=build, name="lsh_index", daemon=True)
+    thread.start()
+    thread.join()
+    if isinstance(built[0], BaseException):
+        raise built[0]
+    return built[0]
 
 
 def ratio_match(
