@@ -261,6 +261,39 @@ def test_restarted_tracker_reloads_its_map_and_keeps_the_reference(ros_env, star
     assert not [p.name for p in state.iterdir() if p.name.endswith(".tmp")]
 
 
+def test_saved_map_follows_a_revisit(ros_env, start_process, harness, tmp_path):
+    """A pan out and back: the way back tracks the keyframes of the way out (TRACKING, no new keyframe)
+    and the saved map says which one it tracks last, so a restart relocalises against it first."""
+    from ptz_selfcal.core.tracker import map_from_bytes
+
+    state = tmp_path / "state"
+    args = ("-p", f"state_dir:={state}", "-p", "save_period:=0.2")
+    proc = start_process(node_command(MODULE, *args), ros_env, "tracker_revisit")
+    tex = texture()
+    connect(harness, proc)
+    out = np.radians(np.linspace(0.0, 20.0, 41))  # keyframes every few degrees
+    pans = [*out, *out[-2::-1]]
+    for seq, pan in enumerate(pans):
+        harness.send(seq, frame(tex, float(pan), float(0.2 * pan))[0], float(pan))
+        harness.spin(0.01)
+    assert harness.spin(60.0, lambda: len(harness.homographies) >= len(pans)), proc.output()
+    made = max(m.keyframe_id for m in harness.homographies if m.state == m.NEW_KEYFRAME)
+    last = harness.homographies[-1]
+    assert last.state == last.TRACKING and last.keyframe_id < made, (last.state, last.keyframe_id, made)
+
+    def saved_keyframe() -> int | None:
+        try:
+            return int(map_from_bytes((state / "tracker_map.npz").read_bytes())[0]["keyframe_id"])
+        except (OSError, ValueError):
+            return None  # not written yet
+
+    assert harness.spin(10.0, lambda: saved_keyframe() == last.keyframe_id), (
+        saved_keyframe(),
+        last.keyframe_id,
+    )
+    assert proc.stop() == 0
+
+
 def test_corrupt_saved_map_gives_a_warning_and_a_new_map(ros_env, start_process, harness, tmp_path):
     state = tmp_path / "state"
     state.mkdir()

@@ -392,3 +392,15 @@ def test_back_and_forth_passes_revisit_the_stored_keyframes(texture):
     assert len(first) >= 3
     assert later == [] and used <= first  # every later frame tracked against a first-pass keyframe
     assert len(passes[False][1]) >= 3  # without revisiting, every pass adds keyframes
+    # The saved map carries what the revisits changed: the keyframe tracked last (a revisited one, here
+    # the reference, which a restarted tracker tries first) and the least-recently-used order the store
+    # prunes by. After the pass out and back: the keyframes in the order they were left.
+    tracker = HomographyTracker()
+    end = run(tracker, frames[: 2 * 41 - 1])[-1]
+    order = list(tracker.keyframes())
+    assert end.keyframe_id == tracker.reference_id and order == sorted(order, reverse=True)
+    data, _ = map_from_bytes(map_to_bytes(tracker.export_map()))
+    assert data["keyframe_id"] == end.keyframe_id
+    restored = HomographyTracker(TrackerConfig(max_keyframes=len(order) - 1))
+    restored.restore_map(data)
+    assert list(restored.keyframes()) == order[1:]  # the least recently used dropped, not the oldest

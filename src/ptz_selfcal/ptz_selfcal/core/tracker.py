@@ -18,10 +18,13 @@ the camera.
 Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
 
 Persistence: export_map() gives the keyframe map as plain data (ids, reference, homographies, working
-images and corners; descriptors are recomputed from the images), map_to_bytes()/map_from_bytes() turn it
-into one .npz blob and back (no pickle) and restore_map() loads it: the tracker then starts lost and its
-first frame relocalises against the stored keyframes, so a restarted tracker keeps the same reference
-and keyframe ids (new ids continue after the stored ones).
+images and corners, least recently used first; descriptors are recomputed from the images),
+map_to_bytes()/map_from_bytes() turn it into one .npz blob and back (no pickle) and restore_map() loads
+it: the tracker then starts lost and its first frame relocalises against the stored keyframes (the last
+tracked one first), so a restarted tracker keeps the same reference and keyframe ids (new ids continue
+after the stored ones). A revisit changes the map (the keyframe tracked, the pruning order) on a
+TRACKING frame: a caller saving the map saves it when a result's keyframe_id changes, not only on
+NEW_KEYFRAME / RELOCALISED.
 """
 
 from __future__ import annotations
@@ -104,7 +107,7 @@ class TrackerConfig:
     # A camera back at a view it has seen: repeated passes leave the map and the calibration alone.
     revisit_keyframes: bool = True  # a frame needing a new keyframe tracks a stored one covering it instead
     revisit_min_overlap: float = 0.85  # fraction of the frame a stored keyframe must cover to be revisited
-    max_keyframes: int = 64  # keyframe store cap (oldest pruned; the reference is kept)
+    max_keyframes: int = 64  # keyframe store cap (least recently used pruned; the reference is kept)
     descriptor: str = "orb"  # re-matching/relocalisation descriptor: "orb" or "sift"
     descriptor_features: int = 500
     descriptor_ratio: float = 0.8
@@ -243,7 +246,7 @@ class HomographyTracker:
         """Replace the map by an exported one (ValueError when it is inconsistent; the tracker is then
         reset). The next frame is relocalised against the stored keyframes (same reference and keyframe
         ids); frame ids continue after the stored frame index. Keyframes beyond max_keyframes are dropped
-        (the oldest; never the reference or the last tracked one)."""
+        (the least recently used, the map's order; never the reference or the last tracked one)."""
         self.reset()
         try:
             keyframes = OrderedDict()
@@ -745,7 +748,8 @@ class HomographyTracker:
         return keyframe
 
     def _prune(self) -> None:
-        """Bounded memory: drop the oldest keyframes beyond the cap, never the reference or current one."""
+        """Bounded memory: drop the least recently used keyframes beyond the cap (the store's order: made
+        or revisited last at the end), never the reference or the current one."""
         while len(self._keyframes) > self.config.max_keyframes:
             victim = next(k for k in self._keyframes if k not in (self._reference_id, self._keyframe_id))
             del self._keyframes[victim]
@@ -785,8 +789,9 @@ class HomographyTracker:
         return self._result(TrackingState.TRACKING_LOST, stamp, match_count)
 
     def _relocalisation_order(self) -> list[Keyframe]:
-        """The last tracked keyframe, then the others newest first in a window that moves on every lost
-        frame: relocalise_candidates per frame bound the cost, and all keyframes get tried in turn."""
+        """The last tracked keyframe, then the others most recently used first in a window that moves on
+        every lost frame: relocalise_candidates per frame bound the cost, and all keyframes get tried in
+        turn."""
         last = [self._keyframes[self._keyframe_id]] if self._keyframe_id in self._keyframes else []
         others = [kf for k, kf in reversed(self._keyframes.items()) if k != self._keyframe_id]
         count = max(self.config.relocalise_candidates - len(last), 0)

@@ -109,7 +109,7 @@ _STATE = {
 }
 _IDENTITY = np.eye(3).ravel()
 MAP_FILE = "tracker_map.npz"
-_MAP_STATES = (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)  # the states that change the map
+_MAP_STATES = (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)  # the states that add a keyframe
 # TrackerConfig fields the node does not expose (frame_ingest chooses the working scale).
 _NOT_PARAMETERS = {"working_scale"}
 _FRACTIONS = {"ratio", "fraction", "overlap", "level", "confidence"}  # name words of (0, 1] values
@@ -182,6 +182,7 @@ class HomographyTrackerNode(Node):
         self._durations: deque[float] = deque(maxlen=1000)
         self._last_seq: int | None = None
         self._last_frame_index = -1
+        self._map_keyframe_id: int | None = None  # keyframe of the last result (a change: save the map)
         self._keyframe_stamps: dict[int, tuple[Time, str]] = {}
         self._reference: tuple[Time, str] | None = None
         self._state_counts: Counter[str] = Counter()
@@ -322,7 +323,13 @@ class HomographyTrackerNode(Node):
             self._tracker.reset()
         self._durations.append(time.perf_counter() - start)
         self._publish(msg, result)
-        if self._saver is not None and result is not None and result.state in _MAP_STATES:
+        if result is None:
+            return
+        # A revisit (TRACKING on from a stored keyframe) changes the map too: the keyframe a restarted
+        # tracker relocalises against first, and the least-recently-used order its store prunes by.
+        moved = result.keyframe_id is not None and result.keyframe_id != self._map_keyframe_id
+        self._map_keyframe_id = result.keyframe_id
+        if self._saver is not None and (result.state in _MAP_STATES or moved):
             self._queue_map_save()
 
     def _publish(self, frame: IngestedFrame, result: TrackResult | None) -> None:
