@@ -368,6 +368,29 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     assert feed_distorted(unchecked, K, H, lam)[-1].status == cs.CONVERGED
 
 
+def test_fixed_lens_solves_start_from_the_previous_adjustment() -> None:
+    """After the first adjustment a fixed lens's solves start from the previous one (K, and the
+    rotation of every keyframe it held) instead of LM on eq. 22, and end where a solve from LM ends."""
+    from ptz_selfcal.core.distortion import division_lambda_for_corner_shift
+
+    K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
+    lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
+    session = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
+    feed_distorted(session, K, H[:55], lam)  # (H[60] is the identity, i.e. the reference's)
+    calibrator = session.calibrator
+    assert calibrator.last_solve.method.startswith("warm+")
+    # solved again with the prior weighed by the same noise estimate (eq. 27), once warm, once from LM
+    calibrator.reoptimise()
+    assert calibrator.last_solve.method.startswith("warm+")
+    warm_K, warm_lam = calibrator.reference_K, session.solver.shared_lam
+    session.solver._warm = None
+    calibrator.reoptimise()
+    assert calibrator.last_solve.method.startswith("lm_")
+    cold_K = calibrator.reference_K
+    assert abs(warm_K[1, 1] - cold_K[1, 1]) < 1e-3 and np.hypot(*(warm_K[:2, 2] - cold_K[:2, 2])) < 1e-3
+    assert abs(warm_lam / session.solver.shared_lam - 1.0) < 1e-6
+
+
 def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
     """The same distorted lens calibrated WITHOUT the radial term: f is biased, its sigma_f says
     nothing about it, and the lens-model check keeps it from CONVERGED (with the check off it would
