@@ -52,6 +52,14 @@ def sequence(n: int, pan_deg: float, tilt_deg: float, seed: int = 0):
     return K, R, H, f
 
 
+def fixed_lens_pan(n: int):
+    """The sweep's pan (30 degrees, no tilt) at its first focal length throughout: a fixed lens."""
+    K, R, _, f = sequence(n, pan_deg=30.0, tilt_deg=0.0)
+    K = np.repeat(K[:1], n, axis=0)
+    H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
+    return K, H, f[0]
+
+
 class Harness:
     def __init__(self, name: str) -> None:
         self.node = rclpy.create_node(name)
@@ -289,20 +297,11 @@ def test_pan_only_motion_is_reported_degenerate(ros, tmp_path: Path) -> None:
     try:
         harness.wait_connected()
         n = 72
-        K, R, H, f = sequence(n, pan_deg=30.0, tilt_deg=0.0)
-        # constant zoom, pan only
-        K = np.repeat(K[:1], n, axis=0)
-        H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
-        statuses = []
-        for j in range(n):
-            keyframe = j % 6 == 0
-            state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
-            stamp = harness.send(j, H[j], state, j - j % 6, f[0])
-            statuses.append(harness.frames[stamp].status)
-            time.sleep(0.01)
+        _, H, f0 = fixed_lens_pan(n)  # constant zoom, pan only
+        statuses = send_keyframed(harness, H, f0)
         harness.wait_settled(expected_keyframes=0, timeout=20.0)
         for j in range(n - 6, n):
-            stamp = harness.send(j + 1000, H[j], HomographyStamped.TRACKING, n - 6, f[0])
+            stamp = harness.send(j + 1000, H[j], HomographyStamped.TRACKING, n - 6, f0)
             statuses.append(harness.frames[stamp].status)
         assert statuses[-1] == FrameCalibration.DEGENERATE_MOTION, statuses[-10:]
         assert FrameCalibration.CONVERGED not in statuses
@@ -321,19 +320,10 @@ def test_fixed_lens_parameter_calibrates_a_pan(ros, tmp_path: Path) -> None:
     try:
         harness.wait_connected()
         n = 72
-        K, R, H, f = sequence(n, pan_deg=30.0, tilt_deg=0.0)
-        K = np.repeat(K[:1], n, axis=0)
-        H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
-        rng = np.random.default_rng(3)
-        for j in range(n):
-            keyframe = j % 6 == 0
-            state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
-            harness.send(j, H[j], state, j - j % 6, f[0])
-            if keyframe and j >= 6:  # the tracker's KeyframeMatches (the adjustment's input)
-                harness.send_matches(j, j - 6, H, rng)
-            time.sleep(0.01)
+        K, H, f0 = fixed_lens_pan(n)
+        send_keyframed(harness, H, f0, matches=np.random.default_rng(3))
         harness.wait_settled(expected_keyframes=n // 6 - 1, timeout=20.0)
-        stamp = harness.send(n + 1000, H[n - 1], HomographyStamped.TRACKING, n - 6, f[0])
+        stamp = harness.send(n + 1000, H[n - 1], HomographyStamped.TRACKING, n - 6, f0)
         out = harness.frames[stamp]
         assert out.status == FrameCalibration.CONVERGED, out.status
         assert abs(out.fx / K[0][0, 0] - 1.0) < 1e-3 and abs(out.fy / K[0][1, 1] - 1.0) < 1e-3
@@ -342,6 +332,21 @@ def test_fixed_lens_parameter_calibrates_a_pan(ros, tmp_path: Path) -> None:
     finally:
         stop(proc)
         harness.close()
+
+
+def send_keyframed(harness: Harness, H: np.ndarray, f0: float, matches=None) -> list[int]:
+    """Every frame of H, a keyframe every 6th (with the tracker's KeyframeMatches to the previous one
+    when `matches`, a numpy Generator, is given); the statuses published."""
+    statuses = []
+    for j in range(len(H)):
+        keyframe = j % 6 == 0
+        state = HomographyStamped.NEW_KEYFRAME if keyframe else HomographyStamped.TRACKING
+        stamp = harness.send(j, H[j], state, j - j % 6, f0)
+        statuses.append(harness.frames[stamp].status)
+        if matches is not None and keyframe and j >= 6:  # the adjustment's input
+            harness.send_matches(j, j - 6, H, matches)
+        time.sleep(0.01)
+    return statuses
 
 
 def _namespaced_harness(ns: str) -> Harness:
