@@ -21,10 +21,18 @@ the session held at the end.
 
 from __future__ import annotations
 
+import os
+
+# One BLAS thread, as in the product's processes (ptz_selfcal/__init__.py sets it before numpy loads;
+# here numpy loads first): a multi-threaded OpenBLAS spin-waits on the small systems of the keyframe
+# adjustment and counted 2-4x the calibration's single-threaded CPU per still on this 2-core machine.
+# OpenCV's own thread pool is not BLAS: its row is unchanged.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
 import argparse
 import hashlib
 import json
-import os
 import subprocess
 import sys
 import tempfile
