@@ -276,13 +276,13 @@ def to_working(image: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(image, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
 
 
-# The real sets' front end (core/stills.py: which stills to match, features detected once per still).
-STILLS = StillsConfig()
-
-
-def track_sequence(seq: Sequence, on_frame: Callable | None = None) -> Tracking:
-    """Feed every frame to the tracker; on_frame(i, image, scale, result) runs inside the timing."""
-    tracker = StillsTracker(STILLS) if seq.fixed_focal else HomographyTracker()
+def track_sequence(
+    seq: Sequence, on_frame: Callable | None = None, stills: StillsConfig | None = None
+) -> Tracking:
+    """Feed every frame to the tracker; on_frame(i, image, scale, result) runs inside the timing. The
+    real sets (stills) go through core/stills.StillsTracker (`stills`: its configuration, default its
+    defaults), video through HomographyTracker."""
+    tracker = StillsTracker(stills or StillsConfig()) if seq.fixed_focal else HomographyTracker()
     scale = working_scale(seq.size)
     H_ref: list[Array | None] = []
     refs: list[int | None] = []
@@ -520,7 +520,10 @@ def session_config(focal_model: str = "varying", fixed_lens_distortion: bool = F
 
 
 def run_session(
-    seq: Sequence, focal_model: str = "varying", distortion: bool | None = None
+    seq: Sequence,
+    focal_model: str = "varying",
+    distortion: bool | None = None,
+    stills: StillsConfig | None = None,
 ) -> tuple[list[MethodResult], Tracking]:
     """Frames one by one as the nodes run them: tracker -> CalibratorSession (the calibrator node's
     logic: IncrementalCalibrator, LM + keyframe MAP bundle adjustment), whose worker step runs inline
@@ -533,7 +536,8 @@ def run_session(
     step, D from its plumb_bob fit); for a fixed lens one coefficient in the session's adjustment;
     None: as the product is configured for the input (estimate_distortion for a distorted lens).
     "As published" counts the frames the product published as CONVERGED (DESIGN.md 4: the statuses
-    before it say the calibration is not yet to be taken)."""
+    before it say the calibration is not yet to be taken). `stills`: the stills front end's
+    configuration for the real sets (track_sequence)."""
     from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput
     from ptz_selfcal.core.lens_correction import SessionLensHook
 
@@ -577,7 +581,7 @@ def run_session(
             lens.work(session)
         calib_cpu += time.process_time() - c0
 
-    tracking = track_sequence(seq, on_frame)
+    tracking = track_sequence(seq, on_frame, stills)
     ms = per_frame_ms(tracking, len(seq.frames))
     if fixed:
         name = (

@@ -69,8 +69,7 @@ def row(name: str, seq: peers.Sequence, config: StillsConfig) -> str:
     lost = sum(r.H_ref is None for r in results)
     f_est = tracker.focal(tracker.stills[0].size)
     f_est = f"{100.0 * (f_est - seq.f_reference) / seq.f_reference:+.0f}" if seq.f_reference else "-"
-    peers.STILLS = config
-    rows, tracking = peers.run_session(seq, "constant")  # the calibrator node, focal_model:=constant
+    rows, tracking = peers.run_session(seq, "constant", stills=config)  # the node, focal_model:=constant
     final = peers.evaluate(seq, rows[-1], None)
     f_as = "-" if np.isnan(final.f_vs_autostitch) else f"{final.f_vs_autostitch:.2f}"
     total_cpu = 1000.0 * tracking.cpu_seconds / n
