@@ -52,3 +52,32 @@ def test_a_fixed_lens_estimating_distortion_shares_its_state_dir(tmp_path):
     params = {"state_dir": "/a", "estimate_distortion": True, "focal_model": "constant"}
     out = _prepared(tmp_path, {"calibrator": {"ros__parameters": params}})
     assert out["/**/homography_tracker"]["ros__parameters"] == {"state_dir": "/a"}
+
+
+def test_default_yaml_lists_every_node_parameter_with_its_default_and_a_description():
+    """config/ptz_selfcal.yaml is the user's reference: every parameter a node declares is there (the
+    tracker's state_dir only as a comment: `launch` fills it in) with the node's default, and each has
+    a description and, for a number, a check that refuses absurd values."""
+    from ptz_selfcal.nodes import calibrator, frame_ingest, homography_tracker
+    from ptz_selfcal.tools.launch import default_params_file
+
+    path = default_params_file()
+    data = yaml.safe_load(path.read_text())
+    commented = {("homography_tracker", "state_dir")}
+    for key, params in (
+        ("frame_ingest", frame_ingest.PARAMS),
+        ("homography_tracker", homography_tracker.PARAMS),
+        ("calibrator", calibrator.PARAMS),
+    ):
+        listed = data[key]["ros__parameters"]
+        for p in params:
+            assert p.description.strip(), (key, p.name)
+            if isinstance(p.default, int | float) and not isinstance(p.default, bool):
+                assert p.check is not None, (key, p.name)
+            if (key, p.name) in commented:
+                assert p.name not in listed and f"# {p.name}:" in path.read_text()
+                continue
+            assert listed.get(p.name) == p.default, (key, p.name, listed.get(p.name), p.default)
+        assert set(listed) <= {p.name for p in params}, (key, set(listed) - {p.name for p in params})
+    for p in homography_tracker.tracker_params():  # every TrackerConfig field, revisit_* included
+        assert p.description.strip() and p.check is not None, p.name
