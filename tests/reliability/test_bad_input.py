@@ -177,6 +177,8 @@ BAD_PARAMS = [
     ("calibrator", "nominal_hfov_deg", 500.0, "nominal_hfov_deg must be in"),
     ("calibrator", "max_keyframes", 2.5, "max_keyframes"),
     ("calibrator", "ba_principal_point", "wobbly", "ba_principal_point must be one of"),
+    ("calibrator", "focal_model", "zoomy", "focal_model must be one of"),
+    ("calibrator", "converged_max_sigma_f", 0.0, "converged_max_sigma_f must be in"),
 ]
 
 
@@ -196,6 +198,20 @@ def test_bad_parameter_value_stops_the_node_at_start_with_a_clear_error(
     assert proc.wait(30.0) == 2, proc.output()
     out = proc.output()
     assert f"{node}: configuration error: parameter {name}" in out and message in out, out
+    assert "Traceback" not in out
+
+
+def test_contradicting_calibrator_parameters_stop_it_with_a_clear_error(ros_env, start_process, tmp_path):
+    path = tmp_path / "fixed_lens_varying_pp.yaml"
+    path.write_text(
+        "calibrator:\n  ros__parameters:\n    focal_model: constant\n    ba_principal_point: varying\n"
+    )
+    proc = start_process(
+        node_command(rh.NODE_MODULES["calibrator"], "--params-file", str(path)), ros_env, "cal"
+    )
+    assert proc.wait(30.0) == 2, proc.output()
+    out = proc.output()
+    assert "calibrator: configuration error: parameter ba_principal_point varying contradicts" in out, out
     assert "Traceback" not in out
 
 

@@ -42,6 +42,7 @@ from ptz_selfcal.core.calibration_state import (
 from ptz_selfcal.core.geometry import quaternion_from_matrix
 from ptz_selfcal.core.lens_correction import SessionLensHook
 from ptz_selfcal.nodes.conversions import (
+    ConfigError,
     Param,
     camera_info_fields,
     declare_params,
@@ -180,6 +181,12 @@ class CalibratorNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("calibrator", **kwargs)
         p = declare_params(self, PARAMS)
+        if p["focal_model"] == "constant" and p["ba_principal_point"] == "varying":
+            # a fixed lens has one K for every image: the session would silently ignore it
+            raise ConfigError(
+                "parameter ba_principal_point varying contradicts focal_model constant (a fixed lens: one "
+                "principal point for every image)"
+            )
         self._p = p
         config = SessionConfig(
             nominal_focal_px=p["nominal_focal_px"],
