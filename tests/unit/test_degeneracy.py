@@ -40,6 +40,34 @@ def circle(n: int, radius_deg: float, tilt0_deg: float = 0.0) -> np.ndarray:
     return np.array([ptz_rotation(r * np.cos(a), np.radians(tilt0_deg) + r * np.sin(a)) for a in phi])
 
 
+def test_single_axis_is_a_status_only_for_models_it_leaves_undetermined() -> None:
+    """Section 6.1 (Hayman 2000): pure pan leaves a zooming camera undetermined but not a fixed lens
+    with square pixels and zero skew; the report still describes the motion as single-axis."""
+    from ptz_selfcal.core.degeneracy import single_axis_is_degenerate
+    from ptz_selfcal.core.intrinsics import IntrinsicsModel, ParamMode
+
+    fixed = IntrinsicsModel(focal=ParamMode.CONSTANT)
+    assert not single_axis_is_degenerate(fixed)
+    for model in (
+        IntrinsicsModel(),  # f per frame
+        SQUARE_VARYING_PP,
+        IntrinsicsModel(focal=ParamMode.CONSTANT, principal_point=ParamMode.VARYING),
+        IntrinsicsModel(focal=ParamMode.CONSTANT, aspect=ParamMode.CONSTANT),  # aspect only constant
+        IntrinsicsModel(focal=ParamMode.CONSTANT, skew=ParamMode.CONSTANT),
+    ):
+        assert single_axis_is_degenerate(model), model
+    angles = np.radians(np.linspace(0.0, 20.0, 15))
+    R = relative(np.array([ptz_rotation(a, np.radians(10.0)) for a in angles]))
+    K = np.repeat(zoom(1, 800.0, 800.0), 15, axis=0)
+    report = analyse_motion(R, K, SIZE, single_axis_degenerate=single_axis_is_degenerate(fixed))
+    assert report.single_axis and report.axis_ratio < 1e-6  # described as it is
+    assert report.status == STATUS_OK and report.well_posed
+    assert analyse_motion(R, K, SIZE).status == STATUS_SINGLE_AXIS  # the default: degenerate
+    # too little rotation stays a status whatever the model
+    small = relative(np.array([ptz_rotation(a / 100.0, np.radians(10.0)) for a in angles]))  # 0.2 deg
+    assert analyse_motion(small, K, SIZE, single_axis_degenerate=False).status == STATUS_INSUFFICIENT_ROTATION
+
+
 def test_circle_of_paper_configuration_a_is_ok() -> None:
     report = analyse_motion(relative(circle(30, 5.0)), zoom(30, 800.0, 1400.0), SIZE)
     assert report.status == STATUS_OK and report.well_posed
