@@ -63,7 +63,8 @@ def loss_results(request):
     feeder = rh.Feeder("loss_feeder")
     try:
         feeder.wait_connected()
-        results = rh.tracking_loss_scenario(feeder, W, H)
+        disturbances = ("black", "blur", "scene_cut", "preset_90deg", "none")  # none: the control
+        results = rh.tracking_loss_scenario(feeder, W, H, disturbances=disturbances)
         feeder.spin(0.6)
         results["_diagnostics"] = dict(feeder.diagnostics)
         results["_infos"] = {ns: len(v) for ns, v in feeder.infos.items()}
@@ -110,4 +111,14 @@ def test_preset_move_predicted_from_zoom_then_relocalised_uncorrupted(loss_resul
     assert "PREDICTED_FROM_ZOOM" in r["statuses"]
     assert max(r["errors"]) < 0.05, r["errors"]
     assert r["recovery_frames"] is not None and r["recovery_frames"] <= 3, r["after_statuses"]
+    assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
+
+
+def test_undisturbed_pass_over_the_same_views_does_not_drift(loss_results):
+    """The control: the same views once more with nothing in between. The tracker tracks them against
+    the keyframes it made on the first pass (revisits), so the calibrator's keyframe set and the
+    frames' calibration stay as they were (issue 7: they drifted pass after pass before)."""
+    r = loss_results["none"]
+    assert r["frames"] == 0 and r["recovery_frames"] == 0, r["after_statuses"]
+    assert set(r["after_statuses"]) <= rh.CALIBRATED, r["after_statuses"]
     assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
