@@ -257,11 +257,36 @@ def test_keyframe_pair_observations_recover_the_truth() -> None:
     R_true = seq.R_relative[keyframes]
     K = K_true * np.array([[0.97, 1, 1], [1, 0.97, 1], [1, 1, 1]])
     K[:, :2, 2] += [3.0, 2.0]
-    for schur in ("sparse", "dense"):  # the two ways of eliminating the rays agree
+    for schur in ("sparse", "dense", "pair"):  # the three ways of eliminating the rays agree
         result = bundle_adjust(obs, K, R_true, seq.image_size, SQUARE_CONSTANT_PP, schur=schur)
         np.testing.assert_allclose(result.focal, K_true[:, 1, 1], rtol=1e-6)
         np.testing.assert_allclose(result.principal_point, K_true[:, :2, 2], atol=1e-4)
         assert max(rotation_angle(Re @ Rt.T) for Re, Rt in zip(result.R, R_true)) < 1e-8
+
+
+def test_pair_elimination_with_shared_unknowns_and_distortion() -> None:
+    """A fixed lens (one f, one principal point, one shared division coefficient: unknowns every
+    frame shares, merged in each frame pair's block) from noisy keyframe pairs, frames in both orders
+    within a pair: the elimination by frame pair ('pair', what 'auto' takes for keyframe matches)
+    gives the dense elimination's solution, uncertainty and cost."""
+    seq = paper_sequence("A", 0.3, seed=5)
+    keyframes = [0, 6, 12, 18, 24, 29]
+    matches = []
+    for a, b in [(0, 6), (12, 6), (12, 18), (24, 18), (24, 29), (0, 12), (6, 18), (29, 0)]:
+        _, ia, ib = np.intersect1d(seq.point_ids[a], seq.point_ids[b], return_indices=True)
+        matches.append((keyframes.index(a), keyframes.index(b), seq.pixels[a][ia], seq.pixels[b][ib]))
+    obs = pair_observations(matches)
+    K = seq.K[keyframes] * np.array([[1.03, 1, 1], [1, 1.03, 1], [1, 1, 1]])
+    model = IntrinsicsModel(focal=ParamMode.CONSTANT)
+    kw = {"pp_prior": default_pp_prior(seq.image_size, 5.0), "noise_sigma": 0.3, "distortion": "shared"}
+    dense = bundle_adjust(obs, K, seq.R_relative[keyframes], seq.image_size, model, schur="dense", **kw)
+    pair = bundle_adjust(obs, K, seq.R_relative[keyframes], seq.image_size, model, schur="pair", **kw)
+    np.testing.assert_allclose(pair.K, dense.K, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(pair.info["lam"], dense.info["lam"], rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(pair.sigma_f, dense.sigma_f, rtol=1e-6)
+    np.testing.assert_allclose(pair.sigma_pp, dense.sigma_pp, rtol=1e-6)
+    np.testing.assert_allclose(pair.cost, dense.cost, rtol=1e-10)
+    assert pair.iterations == dense.iterations
 
 
 def test_sparse_and_dense_elimination_give_the_same_solution_and_uncertainty() -> None:
@@ -277,6 +302,8 @@ def test_sparse_and_dense_elimination_give_the_same_solution_and_uncertainty() -
     np.testing.assert_allclose(sparse.cost, dense.cost, rtol=1e-10)
     with pytest.raises(ValueError, match="schur"):
         bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_CONSTANT_PP, schur="banded")
+    with pytest.raises(ValueError, match="two frames"):  # rays seen in many frames: not by pairs
+        bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_CONSTANT_PP, schur="pair")
 
 
 def test_focal_lower_bound_and_errors() -> None:

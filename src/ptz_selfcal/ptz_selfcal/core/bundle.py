@@ -461,13 +461,106 @@ def _sparse_structure(obs: _PreparedObservations, layout: _Layout, n_rays: int) 
     return _SparseStructure(obs.ray_idx, local, first, second, bounds, index)
 
 
+class _PairCoupling:
+    """W for rays seen in exactly two frames (every keyframe match is one): each ray's column of W
+    lives on the union of its two frames' local unknowns (U <= 2L rows instead of P), rays grouped by
+    frame pair, so W V^-1 W^T is one small GEMM per frame pair (section 5's sparse structure; the
+    keyframe adjustment's reduced system is dominated by the shared intrinsics and two rotations per
+    ray, and the dense (P, 2, m) W spent half an iteration on zeros)."""
+
+    def __init__(self, W_obs: Array, structure: _PairStructure, n_params: int) -> None:
+        st = structure
+        U, m = st.union.shape
+        W = np.bincount(st.scatter.ravel(), weights=W_obs.ravel(), minlength=U * m * 2)
+        self.W = W.reshape(U, m, 2)  # rows of each ray's union, rays in frame-pair order
+        self.st = structure
+        self.P = n_params
+
+    def schur(self, V_inv: Array) -> Array:
+        v = V_inv[:, self.st.order]
+        W0, W1 = self.W[..., 0], self.W[..., 1]
+        WV = np.stack([W0 * v[0] + W1 * v[1], W0 * v[1] + W1 * v[2]], axis=2)  # (U, m, 2)
+        U = len(self.W)
+        bounds = self.st.group_bounds
+        blocks = np.empty((len(bounds) - 1, U, U))
+        for g, (lo, hi) in enumerate(pairwise(bounds)):
+            blocks[g] = WV[:, lo:hi].reshape(U, -1) @ self.W[:, lo:hi].reshape(U, -1).T
+        P1 = self.P + 1
+        S = np.bincount(self.st.group_index.ravel(), weights=blocks.ravel(), minlength=P1 * P1)
+        return S.reshape(P1, P1)[:-1, :-1]
+
+    def times_rays(self, V_inv: Array, g_ray: Array) -> Array:
+        Vg = _blocks_times(V_inv, g_ray)[:, self.st.order]  # (2, m)
+        contrib = self.W[..., 0] * Vg[0] + self.W[..., 1] * Vg[1]  # (U, m)
+        return np.bincount(self.st.union.ravel(), weights=contrib.ravel(), minlength=self.P + 1)[:-1]
+
+    def transpose_times(self, d_cam: Array) -> Array:
+        d = np.append(d_cam, 0.0)[self.st.union]  # (U, m)
+        out = np.empty((2, d.shape[1]))
+        out[:, self.st.order] = np.einsum("umc,um->cm", self.W, d)
+        return out
+
+
+@dataclass
+class _PairStructure:
+    """Fixed index structure of _PairCoupling for one solve (every ray seen in exactly two frames)."""
+
+    order: IntArray  # (m,) rays sorted by frame pair (position r holds ray order[r])
+    union: IntArray  # (U, m) global unknown index of each union row of each sorted ray (P = none)
+    scatter: IntArray  # (L, 2, N) flat index of each observation's W entry in the (U, m, 2) array
+    group_bounds: IntArray  # (G + 1,) sorted rays of frame pair g are [bounds[g], bounds[g + 1])
+    group_index: IntArray  # (G, U, U) flat index of each frame pair's block in the (P+1, P+1) matrix
+
+
+def _pair_structure(obs: _PreparedObservations, layout: _Layout, n_rays: int) -> _PairStructure:
+    by_ray = np.argsort(obs.ray_idx, kind="stable").reshape(n_rays, 2)  # the two observations of each
+    frames = obs.frame_idx[by_ray]
+    swap = frames[:, 0] > frames[:, 1]
+    by_ray[swap] = by_ray[swap, ::-1]
+    frames[swap] = frames[swap, ::-1]
+    n_frames, L = layout.local.shape
+    key = frames[:, 0] * n_frames + frames[:, 1]
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    cut = np.flatnonzero(np.diff(key)) + 1
+    bounds = np.concatenate([[0], cut, [len(key)]]).astype(np.intp)
+    P = layout.n_params
+    U = 2 * L
+    G = len(bounds) - 1
+    unions = np.full((G, U), P, dtype=np.intp)
+    second_pos = np.empty((G, L), dtype=np.intp)
+    for g, k in enumerate(key[bounds[:-1]]):
+        a, b = divmod(int(k), n_frames)
+        unions[g, :L] = layout.local[a]
+        row = {int(v): i for i, v in enumerate(layout.local[a]) if v != P}  # shared unknowns merge
+        nxt = L
+        for i, v in enumerate(layout.local[b]):
+            if int(v) != P and int(v) in row:
+                second_pos[g, i] = row[int(v)]
+            else:
+                unions[g, nxt], second_pos[g, i] = v, nxt
+                nxt += 1
+    group_of = np.repeat(np.arange(G), np.diff(bounds))  # (m,) group of each sorted ray
+    rank = np.empty(n_rays, dtype=np.intp)
+    rank[order] = np.arange(n_rays)
+    first, second = by_ray[:, 0], by_ray[:, 1]
+    pos = np.empty((L, len(obs.frame_idx)), dtype=np.intp)
+    pos[:, first] = np.arange(L)[:, None]
+    pos[:, second] = second_pos[group_of[rank]].T
+    r = rank[obs.ray_idx]  # sorted position of each observation's ray
+    scatter = (pos[:, None, :] * n_rays + r[None, None, :]) * 2 + np.arange(2)[None, :, None]
+    P1 = P + 1
+    group_index = unions[:, :, None] * P1 + unions[:, None, :]
+    return _PairStructure(order, np.ascontiguousarray(unions[group_of].T), scatter, bounds, group_index)
+
+
 @dataclass
 class _Normal:
     """Normal equations in block form: U (P, P), the camera-ray coupling W, V (3, m) as
     (v00, v01, v11) per ray, gradients g_cam (P,) and g_ray (2, m)."""
 
     U: Array
-    W: _DenseCoupling | _SparseCoupling
+    W: _DenseCoupling | _SparseCoupling | _PairCoupling
     V: Array
     g_cam: Array
     g_ray: Array
@@ -475,16 +568,23 @@ class _Normal:
 
 def _choose_coupling(
     obs: _PreparedObservations, layout: _Layout, n_rays: int, schur: str
-) -> IntArray | _SparseStructure:
-    """Dense W for long tracks, per-observation-pair accumulation for short ones (keyframe pairs).
+) -> IntArray | _SparseStructure | _PairStructure:
+    """Dense W for long tracks, per-observation-pair accumulation for short ones; rays seen in exactly
+    two frames (keyframe pairs) by frame pair (_PairCoupling) when that is narrower than P.
 
     Cost model: the dense product is P^2 2m flops in BLAS; the sparse one ~50x more per entry of its
     L^2 sum_j n_j^2 pair blocks (gather, multiply, scatter).
     """
-    if schur not in ("auto", "dense", "sparse"):
-        raise ValueError(f"schur must be 'auto', 'dense' or 'sparse', not {schur!r}")
+    if schur not in ("auto", "dense", "sparse", "pair"):
+        raise ValueError(f"schur must be 'auto', 'dense', 'sparse' or 'pair', not {schur!r}")
     P, L = layout.n_params, layout.local.shape[1]
-    pairs = float(np.sum(np.bincount(obs.ray_idx, minlength=n_rays).astype(float) ** 2))
+    counts = np.bincount(obs.ray_idx, minlength=n_rays)
+    two_views = bool(np.all(counts == 2))
+    if schur == "pair" and not two_views:
+        raise ValueError("schur 'pair' needs every ray seen in exactly two frames")
+    if schur == "pair" or (schur == "auto" and two_views and 2 * L < P):
+        return _pair_structure(obs, layout, n_rays)
+    pairs = float(np.sum(counts.astype(float) ** 2))
     sparse = schur == "sparse" or (schur == "auto" and 50.0 * pairs * L * L < 2.0 * P * P * n_rays)
     return _sparse_structure(obs, layout, n_rays) if sparse else _coupling_index(obs, layout, n_rays)
 
@@ -503,7 +603,7 @@ def _normal_equations(
     layout: _Layout,
     n_rays: int,
     prior_grad: tuple[Array, Array],
-    coupling: IntArray | _SparseStructure,
+    coupling: IntArray | _SparseStructure | _PairStructure,
 ) -> _Normal:
     """Gauss-Newton normal equations J^T J, J^T r in block form; coupling is the dense W index of
     `_coupling_index` or the structure of `_sparse_structure`."""
@@ -538,8 +638,10 @@ def _normal_equations(
         ]
     )
     W_obs = J_cam[0][:, None, :] * J_ray[0][None] + J_cam[1][:, None, :] * J_ray[1][None]
-    if isinstance(coupling, _SparseStructure):
-        W: _DenseCoupling | _SparseCoupling = _SparseCoupling(W_obs, coupling, P1 - 1, n_rays)
+    if isinstance(coupling, _PairStructure):
+        W: _DenseCoupling | _SparseCoupling | _PairCoupling = _PairCoupling(W_obs, coupling, P1 - 1)
+    elif isinstance(coupling, _SparseStructure):
+        W = _SparseCoupling(W_obs, coupling, P1 - 1, n_rays)
     else:
         dense = np.bincount(coupling.ravel(), weights=W_obs.ravel(), minlength=P1 * 2 * n_rays)
         W = _DenseCoupling(dense.reshape(P1, 2, n_rays)[:-1])
@@ -709,7 +811,8 @@ def bundle_adjust(
     residual variance; `residual` is the rms reprojection error in pixels. With analyse, the result
     carries a MotionReport (section 6) and ok is False when the motion is not well posed.
     schur: how the rays are eliminated, 'dense' (rays seen in many frames), 'sparse' (rays seen in
-    few frames, e.g. keyframe pairs) or 'auto' (by a cost estimate); the result is the same.
+    few frames), 'pair' (every ray seen in exactly two frames: keyframe pairs) or 'auto' ('pair'
+    where it applies and is narrower than P, else by a cost estimate); the result is the same.
     distortion: the observations are DISTORTED pixels; a division coefficient per frame about its
     principal point is estimated with everything else (module docstring): True or "frame", free per
     frame; "curve", on the lam(f) curve of degree curve_degree; "shared", ONE coefficient for every
