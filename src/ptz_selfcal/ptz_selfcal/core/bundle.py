@@ -134,14 +134,19 @@ def _skew(v: Array) -> Array:
 
 def _tangent_bases(X: Array) -> Array:
     """(m, 3, 2) orthonormal bases of the tangent planes of the unit sphere at the rays X."""
-    helper = np.zeros_like(X)
-    use_x = np.abs(X[:, 0]) < 0.9
-    helper[use_x, 0] = 1.0
-    helper[~use_x, 1] = 1.0
-    b1 = np.cross(X, helper)
-    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
-    b2 = np.cross(X, b1)
-    return np.stack([b1, b2], axis=2)
+    x, y, z = X.T
+    use_x = np.abs(x) < 0.9
+    out = np.empty((len(X), 3, 2))
+    # b1 = X x e_x = (0, z, -y) where |x| < 0.9, else X x e_y = (-z, 0, x); b2 = X x b1 (written out)
+    out[:, 0, 0] = np.where(use_x, 0.0, -z)
+    out[:, 1, 0] = np.where(use_x, z, 0.0)
+    out[:, 2, 0] = np.where(use_x, -y, x)
+    out[:, :, 0] /= np.sqrt(np.where(use_x, y * y + z * z, x * x + z * z))[:, None]
+    a, b, c = out[:, 0, 0], out[:, 1, 0], out[:, 2, 0]
+    out[:, 0, 1] = y * c - z * b
+    out[:, 1, 1] = z * a - x * c
+    out[:, 2, 1] = x * b - y * a
+    return out
 
 
 def initial_rays(obs: BundleObservations | _PreparedObservations, K: Array, R: Array, n_rays: int) -> Array:
@@ -215,6 +220,13 @@ class _State:
     X: Array  # (m, 3) unit rays
     lam: Array | None = None  # (n,) division coefficients (None: no distortion)
     curve: _Curve | None = None  # lam(f) when the coefficients follow a curve (lam = curve.lam(f))
+    _bases: Array | None = None  # _tangent_bases(X) for the Jacobian and the step, computed once
+
+    @property
+    def bases(self) -> Array:
+        if self._bases is None:
+            self._bases = _tangent_bases(self.X)
+        return self._bases
 
 
 @dataclass(frozen=True)
@@ -341,7 +353,7 @@ def _jacobians(state: _State, obs: _PreparedObservations, Y: Array, layout: _Lay
         else:
             J_cam[1, k] = 1.0
     # Ray update X <- normalise(X + B d): dY/dd = R_i B_j (tangent basis B of the ray X_j).
-    G = _per_frame(state.R, _tangent_bases(state.X).transpose(1, 2, 0)[:, :, obs.ray_idx], obs.bounds)
+    G = _per_frame(state.R, state.bases.transpose(1, 2, 0)[:, :, obs.ray_idx], obs.bounds)
     J_ray = np.empty((2, 2, len(a)))
     J_ray[0] = A00 * G[0] + A01 * G[1] + A02 * G[2]
     J_ray[1] = A10 * G[0] + A11 * G[1] + A12 * G[2]
@@ -726,7 +738,7 @@ def _apply_step(state: _State, d_cam: Array, d_ray: Array, layout: _Layout, f_mi
     values[:, F] = np.maximum(values[:, F], f_min)
     omega = d[layout.local[:, :3]]
     R = _rodrigues(omega) @ state.R
-    B = _tangent_bases(state.X)
+    B = state.bases
     X = state.X + B[:, :, 0] * d_ray[:, :1] + B[:, :, 1] * d_ray[:, 1:]
     X /= np.linalg.norm(X, axis=1, keepdims=True)
     lam, curve = state.lam, state.curve
