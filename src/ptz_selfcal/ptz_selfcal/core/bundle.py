@@ -810,6 +810,7 @@ def bundle_adjust(
     distortion: bool | str = False,
     lam_init: ArrayLike | None = None,
     curve_degree: int = 2,
+    initial_damping: float = 1e-6,
 ) -> SelfCalibrationResult:
     """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
 
@@ -831,6 +832,10 @@ def bundle_adjust(
     frame (a fixed lens: constant f, one distortion). Starting from lam_init ((n,), default 0; its mean
     for "shared"); the result's info carries "lam" (n,), "sigma_lam" (n,) and, for a curve,
     "distortion_curve" (coefficients, f_ref, half-diagonal).
+    initial_damping: LM's starting damping (relative to the diagonal of the normal equations). The
+    keyframe adjustment (core/calibration_state) starts at 1e-9: from 1e-6 it crept along a pan's
+    near-ambiguity (section 6.2), the damping falling tenfold per accepted iteration before the step
+    could follow the flat direction (real sets: 1.5x the iterations, same solution).
     """
     if distortion not in (False, True, "frame", "curve", "shared"):
         raise ValueError(f"distortion must be False, True, 'frame', 'curve' or 'shared', not {distortion!r}")
@@ -891,7 +896,18 @@ def bundle_adjust(
         shared=distortion == "shared",
     )
     result = _levenberg_marquardt(
-        state, obs, layout, prior, n_rays, ray_ids, max_iterations, f_min, tolerance, model, schur
+        state,
+        obs,
+        layout,
+        prior,
+        n_rays,
+        ray_ids,
+        max_iterations,
+        f_min,
+        tolerance,
+        model,
+        schur,
+        initial_damping,
     )
     if analyse:
         result.motion = analyse_motion(
@@ -932,6 +948,7 @@ def _levenberg_marquardt(
     tolerance: float,
     model: IntrinsicsModel,
     schur: str,
+    initial_damping: float = 1e-6,
 ) -> SelfCalibrationResult:
     """Sparse LM with Marquardt's diagonal damping and Nielsen's damping update."""
     r, Y = _residuals(state, obs)
@@ -940,7 +957,7 @@ def _levenberg_marquardt(
     initial_cost = cost
     exact_cost = 1e-20 * r.shape[1]  # rms below 1e-10 px: nothing left to fit
     coupling = _choose_coupling(obs, layout, n_rays, schur)
-    lam, nu = 1e-6, 2.0
+    lam, nu = float(initial_damping), 2.0
     iterations, message = 0, "maximum iterations reached"
     ne = None
     for iterations in range(1, max_iterations + 1):
