@@ -25,6 +25,7 @@ import argparse
 import contextlib
 import math
 import os
+import struct
 import sys
 import tempfile
 import time
@@ -308,7 +309,7 @@ def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:
             feeder.close()
 
 
-def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> None:
+def overload(domain: Domain, work: Path, lines: list[str], seconds: float, block_s: float = 10.0) -> None:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     latest = ("queue_policy:=latest", "queue_depth:=1")
@@ -323,7 +324,9 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> No
         stages = StageTimes(feeder)
         try:
             feeder.wait_connected(compressed=True)
-            r = rh.overload_scenario(feeder, {n: p.pid for n, p in nodes.items()}, seconds)
+            pids = {n: p.pid for n, p in nodes.items()}
+            blocks = Blocks(feeder, {**pids, "feeder": os.getpid()}, block_s)
+            r = rh.overload_scenario(feeder, pids, seconds, on_sample=blocks.sample)
             feeder.spin(1.0)
             d = feeder.diagnostics
             ingest, tracker = d["frame_ingest"], d["homography_tracker"]
@@ -353,14 +356,121 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float) -> No
                 f"{ingest.get('encoder_messages_drained', 0)}, frames whose encoder wait expired "
                 f"{ingest.get('encoder_wait_expired', 0)}",
                 *stages.lines(feeder),
+                *blocks.lines(r, stages),
             ]
         finally:
             feeder.close()
 
 
+def _machine_busy_s() -> float:
+    """CPU seconds the whole machine was busy (all CPUs: /proc/stat minus idle and iowait)."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    return (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")
+
+
+class Blocks:
+    """The overload run cut into blocks of `block_s` seconds (by send time): what shows whether the latency
+    is bounded or keeps rising, and what else changes with it. At each block boundary: CPU seconds of each
+    node process, of this process (the feeder: encoding-free publishing, receiving every output) and of
+    the whole machine (the rest is other jobs on the same CPUs), and the nodes' /diagnostics counters."""
+
+    def __init__(self, feeder: rh.Feeder, pids: dict[str, int], block_s: float) -> None:
+        self.feeder, self.pids, self.block_s = feeder, pids, block_s
+        self.marks: list[tuple[float, dict[str, float], float, dict[str, dict[str, str]]]] = []
+        self._mark(0.0)
+        self.last = self.marks[0]
+
+    def _mark(self, t: float) -> None:
+        cpu = {name: rh.cpu_seconds(pid) for name, pid in self.pids.items()}
+        diag = {name: dict(values) for name, values in self.feeder.diagnostics.items()}
+        self.marks.append((t, cpu, _machine_busy_s(), diag))
+
+    def sample(self, t: float) -> None:
+        self._mark(t)
+        if t < (len(self.marks) - 1) * self.block_s:  # not a block boundary: only the latest sample
+            self.last = self.marks.pop()
+
+    def lines(self, r: dict, stages: StageTimes) -> list[str]:
+        if self.last[0] > self.marks[-1][0]:  # the partial block at the end (its last sample in the run)
+            self.marks.append(self.last)
+        feeder, p = self.feeder, stages.published
+        sent = sorted(feeder.sent.items(), key=lambda item: item[1])
+        names = [n for n in self.pids if n != "feeder"]
+        out = [
+            f"   per {self.block_s:.0f} s block (frames by send time): latency image sent -> CameraInfo, per "
+            "stage p95 (publish times), CPU % of one core per process over the block, machine busy % of "
+            f"{os.cpu_count()} cores (others: not the graph nor the feeder), tracker counters in the block",
+            f"   {'block s':>8} {'sent':>5} {'calib':>5} {'p50':>4} {'p95':>4} {'max':>4} | {'ingest':>6} "
+            f"{'track':>5} {'calib':>5} | {'cpu in':>6} {'track':>5} {'calib':>5} {'feed':>5} "
+            f"{'others':>6} {'busy':>5} | {'newkf':>5} {'reloc':>5} {'lost':>4} {'shed':>5} {'kf':>3} "
+            f"{'trk ms':>6}",
+        ]
+        rows: list[tuple[float, float, float]] = []  # (block middle s, p95 ms, others % of a core)
+        for (t0, cpu0, busy0, diag0), (t1, cpu1, busy1, diag1) in zip(self.marks, self.marks[1:]):
+            if t1 - t0 < 0.5 * self.block_s:
+                continue
+            frames = [ns for ns, when in sent if t0 <= when - r["start"] < t1]
+            lat = [feeder.info_arrival[ns] - feeder.sent[ns] for ns in frames if ns in feeder.info_arrival]
+            seen = [ns for ns in frames if all(ns in p[k] for k in p)]
+            ingest = [p["ingest"][ns] - feeder.sent[ns] for ns in seen]
+            track = [p["tracker"][ns] - p["ingest"][ns] for ns in seen]
+            calib = [p["calibrator"][ns] - p["tracker"][ns] for ns in seen]
+            dt = t1 - t0
+            use = {n: 100.0 * (cpu1[n] - cpu0[n]) / dt for n in self.pids}
+            busy = 100.0 * (busy1 - busy0) / dt
+            others = busy - sum(use.values())
+            t_new, t_old = diag1.get("homography_tracker", {}), diag0.get("homography_tracker", {})
+
+            def delta(key: str, new=t_new, old=t_old) -> int:
+                return int(float(new.get(key, 0))) - int(float(old.get(key, 0)))
+
+            out.append(
+                f"   {t0:>3.0f}-{t1:<4.0f} {len(frames):>5} {len(lat):>5} {pct(lat, 50):>4} "
+                f"{pct(lat, 95):>4} {pct(lat, 100):>4} | {pct(ingest, 95):>6} {pct(track, 95):>5} "
+                f"{pct(calib, 95):>5} | "
+                + " ".join(f"{use[n]:>{w}.0f}" for n, w in zip([*names, "feeder"], (6, 5, 5, 5)))
+                + f" {others:>6.0f} {busy / os.cpu_count():>5.0f} | {delta('state_NEW_KEYFRAME'):>5} "
+                f"{delta('state_RELOCALISED'):>5} {delta('state_TRACKING_LOST'):>4} "
+                f"{delta('keyframe_changes'):>5} "
+                f"{delta('frames_dropped'):>5} {t_new.get('map_keyframes', '-'):>3} "
+                f"{t_new.get('track_ms_mean', '-'):>6}"
+            )
+            if lat:
+                rows.append((0.5 * (t0 + t1), float(np.percentile(lat, 95)) * 1e3, others))
+        return out + self.summary(rows)
+
+    @staticmethod
+    def summary(rows: list[tuple[float, float, float]], quiet: float = 10.0) -> list[str]:
+        """Bounded or rising: the p95 trend over the blocks in which other jobs took less than `quiet` % of
+        a core (least squares, ms per minute), and how the p95 goes with the other jobs' CPU."""
+        if len(rows) < 3:
+            return []
+        t, p95, others = (np.asarray(v, float) for v in zip(*rows))
+        calm = others < quiet
+        out = []
+        if calm.sum() >= 3:
+            slope = np.polyfit(t[calm] / 60.0, p95[calm], 1)[0]
+            out.append(
+                f"   blocks with other jobs < {quiet:.0f} % of a core: {calm.sum()} of {len(rows)}, p95 "
+                f"{p95[calm].min():.0f}-{p95[calm].max():.0f} ms (median {np.median(p95[calm]):.0f}), trend "
+                f"{slope:+.1f} ms per minute (first {t[calm][0]:.0f} s: {p95[calm][0]:.0f} ms, last "
+                f"{t[calm][-1]:.0f} s: {p95[calm][-1]:.0f} ms)"
+            )
+        if (~calm).any():
+            out.append(
+                f"   blocks with other jobs >= {quiet:.0f} %: {(~calm).sum()}, p95 {p95[~calm].min():.0f}-"
+                f"{p95[~calm].max():.0f} ms at {others[~calm].min():.0f}-{others[~calm].max():.0f} % of a "
+                "core; correlation of block p95 with the other jobs' CPU over all blocks "
+                f"{np.corrcoef(p95, others)[0, 1]:+.2f}"
+            )
+        return out
+
+
 class StageTimes:
     """Where the latency goes: the publish time (DDS source timestamp) of each frame's IngestedFrame,
-    HomographyStamped and CameraInfo, seen by the feeder (best effort, depth 1: no back-pressure)."""
+    HomographyStamped and CameraInfo, seen by the feeder (best effort, depth 1: no back-pressure). Taken
+    serialized, the header stamp read in place: deserialising every 640x360 IngestedFrame cost this
+    process (on the same 2 CPUs as the graph) CPU the measurement should not take."""
 
     def __init__(self, feeder: rh.Feeder) -> None:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -377,12 +487,14 @@ class StageTimes:
             ("tracker", HomographyStamped, topics.HOMOGRAPHY),
             ("calibrator", CameraInfo, topics.CAMERA_INFO),
         ):
-            feeder.node.create_subscription(msg_type, topic, self._callback(key), qos)
+            feeder.node.create_subscription(msg_type, topic, self._callback(key), qos, raw=True)
 
     def _callback(self, key: str):
-        def on_message(msg, info) -> None:
+        def on_message(data: bytes, info) -> None:
+            # CDR: 4 bytes of encapsulation (byte 1: 1 = little endian), then header.stamp (int32, uint32)
+            sec, nanosec = struct.unpack("<iI" if data[1] & 1 else ">iI", data[4:12])
             mono = info["source_timestamp"] * 1e-9 - self.wall_minus_mono
-            self.published[key][rh.ns_of(msg.header.stamp)] = mono
+            self.published[key][sec * 1_000_000_000 + nanosec] = mono
 
         return on_message
 

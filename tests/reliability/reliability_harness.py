@@ -513,10 +513,11 @@ def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int 
 
 def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps: float = 60.0,
                       width: int = 1920, height: int = 1080, distinct: int = 24,
-                      t0: float = T0) -> dict:  # fmt: skip
+                      t0: float = T0, on_sample: Callable[[float], None] | None = None) -> dict:  # fmt: skip
     """Publish JPEG frames of width x height at `fps` (best effort, like a camera driver) with encoders for
     `seconds`, stamped from `t0`; returns what came out: counts, latencies (send -> CameraInfo), RSS samples
-    per node, and the last stamp sent (s)."""
+    per node, the monotonic start and the last stamp sent (s). `on_sample(seconds since the start)` is
+    called with every RSS sample (every 0.25 s)."""
     from sensor_msgs.msg import CompressedImage
 
     fw = f_wide_for(width)
@@ -554,6 +555,8 @@ def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps:
         if now >= next_rss:
             for name, pid in pids.items():
                 rss[name].append((now - start, rss_mb(pid)))
+            if on_sample is not None:
+                on_sample(now - start)
             next_rss = now + 0.25
         feeder.executor.spin_once(timeout_sec=max(0.0, min(0.002, due - time.monotonic())))
     elapsed = time.monotonic() - start
@@ -573,6 +576,7 @@ def overload_scenario(feeder: Feeder, pids: dict[str, int], seconds: float, fps:
         "early_latencies": early,
         "late_latencies": late,
         "rss": rss,
+        "start": start,
         "last_stamp": t0 + (k - 1) / fps,
     }
 

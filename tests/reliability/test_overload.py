@@ -78,9 +78,11 @@ def test_60fps_1080p_is_shed_by_policy_with_bounded_latency_and_memory(ros_env, 
         assert r["rate"] > 55.0, r["rate"]  # the input really was 60 frames/s
         # shed or kept up, never queued: a good share is calibrated
         assert r["calibrated"] > 0.1 * r["sent"], r["calibrated"]
-        # bounded: the latest-wins queues cannot build up, so the latency stays the processing time. It does
-        # grow as the calibrator's re-optimisation takes its CPU share (50 -> 180 ms p95 over 30 s in the
-        # benchmark, up to 370 ms on a loaded machine): an absolute bound, not a ratio
+        # bounded: the latest-wins queues cannot build up, so the latency stays the processing time plus the
+        # wait for a CPU. The graph alone keeps this 2-core machine ~95 % busy, so the latency follows the
+        # CPU other jobs take (benchmarks/reliability.py, per 10 s block over 120 s: flat p95 with the
+        # machine otherwise idle, up to 2x in blocks where other jobs took a core): an absolute bound, not a
+        # ratio of the last to the first third
         lat = np.asarray(r["latencies"]) * 1e3
         late = np.asarray(r["late_latencies"]) * 1e3
         assert np.percentile(late, 95) < 800.0 and lat.max() < 2000.0, (np.percentile(late, 95), lat.max())
@@ -89,6 +91,9 @@ def test_60fps_1080p_is_shed_by_policy_with_bounded_latency_and_memory(ros_env, 
             half = [v for t, v in samples if t >= SECONDS / 2]
             first = [v for t, v in samples if t < SECONDS / 2]
             assert max(half) < max(first) * 1.1 + 20.0, (name, first, half)
+        # the tracker's keyframe store is capped (max_keyframes, default 64) and reported
+        tracker = feeder.diagnostics["homography_tracker"]
+        assert 1 <= int(tracker["map_keyframes"]) <= 64, tracker
         # frame_ingest estimates the images shed before it from the gaps in their stamps (relative to the
         # median interval, which itself grows under heavy shedding: measured 77 for 111 shed, 69 %)
         shed = dropped["before_ingest"]

@@ -329,6 +329,7 @@ class HomographyTrackerNode(Node):
         # tracker relocalises against first, and the least-recently-used order its store prunes by.
         moved = result.keyframe_id is not None and result.keyframe_id != self._map_keyframe_id
         self._map_keyframe_id = result.keyframe_id
+        self._counts["keyframe_changes"] += int(moved)
         if self._saver is not None and (result.state in _MAP_STATES or moved):
             self._queue_map_save()
 
@@ -436,6 +437,7 @@ class HomographyTrackerNode(Node):
             counters["track_ms_p95"] = f"{np.percentile(d, 95):.2f}"
             counters["track_ms_max"] = f"{d.max():.2f}"
         counters["keyframes"] = len(self._keyframe_stamps)
+        counters["map_keyframes"] = len(self._tracker.keyframes())  # in the tracker's store (max_keyframes)
         # matched on this side (what an output published now reaches), so a graph's readiness is observable
         counters["homography_subscribers"] = self._pub.get_subscription_count()
         counters["keyframes_subscribers"] = self._kf_pub.get_subscription_count()
