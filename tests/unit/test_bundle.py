@@ -289,6 +289,18 @@ def test_pair_elimination_with_shared_unknowns_and_distortion() -> None:
     assert pair.iterations == dense.iterations
 
 
+def test_max_focal_change_stops_once_f_has_moved_that_far() -> None:
+    """From a focal length 8% off, the adjustment with max_focal_change=0.02 stops at the first
+    accepted step that moves f beyond 2%, long before it converges; without it, it converges."""
+    seq = paper_sequence("A", 0.3, seed=6)
+    K, R = _perturbed_start(seq, seed=2, focal_scale=1.08)
+    full = bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_CONSTANT_PP)
+    short = bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_CONSTANT_PP, max_focal_change=0.02)
+    assert full.message == "converged" and short.message == "focal length moved beyond max_focal_change"
+    assert short.iterations < full.iterations
+    assert np.max(np.abs(short.focal / K[:, 1, 1] - 1.0)) > 0.02
+
+
 def test_sparse_and_dense_elimination_give_the_same_solution_and_uncertainty() -> None:
     seq = paper_sequence("B", 0.5, seed=8, n_points=300)
     K, R = _perturbed_start(seq, seed=4, focal_scale=1.02)

@@ -811,6 +811,7 @@ def bundle_adjust(
     lam_init: ArrayLike | None = None,
     curve_degree: int = 2,
     initial_damping: float = 1e-6,
+    max_focal_change: float | None = None,
 ) -> SelfCalibrationResult:
     """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
 
@@ -836,6 +837,9 @@ def bundle_adjust(
     keyframe adjustment (core/calibration_state) starts at 1e-9: from 1e-6 it crept along a pan's
     near-ambiguity (section 6.2), the damping falling tenfold per accepted iteration before the step
     could follow the flat direction (real sets: 1.5x the iterations, same solution).
+    max_focal_change: stop (message "focal length moved beyond max_focal_change") once an accepted
+    step leaves a focal length further than this fraction from its start: for a caller that only
+    asks whether f moves (calibration_state's lens-model check), not where it ends.
     """
     if distortion not in (False, True, "frame", "curve", "shared"):
         raise ValueError(f"distortion must be False, True, 'frame', 'curve' or 'shared', not {distortion!r}")
@@ -908,6 +912,7 @@ def bundle_adjust(
         model,
         schur,
         initial_damping,
+        max_focal_change,
     )
     if analyse:
         result.motion = analyse_motion(
@@ -949,6 +954,7 @@ def _levenberg_marquardt(
     model: IntrinsicsModel,
     schur: str,
     initial_damping: float = 1e-6,
+    max_focal_change: float | None = None,
 ) -> SelfCalibrationResult:
     """Sparse LM with Marquardt's diagonal damping and Nielsen's damping update."""
     r, Y = _residuals(state, obs)
@@ -958,6 +964,7 @@ def _levenberg_marquardt(
     exact_cost = 1e-20 * r.shape[1]  # rms below 1e-10 px: nothing left to fit
     coupling = _choose_coupling(obs, layout, n_rays, schur)
     lam, nu = float(initial_damping), 2.0
+    f_start = state.values[:, F].copy()
     iterations, message = 0, "maximum iterations reached"
     ne = None
     for iterations in range(1, max_iterations + 1):
@@ -997,6 +1004,12 @@ def _levenberg_marquardt(
         state, r, Y, prior_terms, cost = candidate, r_new, Y_new, prior_new, cost_new
         if decrease <= tolerance * cost or cost <= exact_cost:
             message = "converged"
+            break
+        if (
+            max_focal_change is not None
+            and np.max(np.abs(state.values[:, F] / f_start - 1.0)) > max_focal_change
+        ):
+            message = "focal length moved beyond max_focal_change"
             break
 
     # Uncertainty from the undamped reduced system at the solution (rays marginalised).

@@ -602,8 +602,10 @@ class KeyframeBundleSolver:
         (one shared coefficient added when it is not estimated, removed when it is), started at the
         solution. The disambiguating information of section 6.2 sits at the image edges, where the
         lens model acts (section 7): a focal length that moves with the lens model is not pinned by
-        the geometry (the real hand-held sets before their loop closes: 13-20 %; after: < 1 %). NaN
-        when the alternative does not solve."""
+        the geometry (the real hand-held sets before their loop closes: 13-20 %; after: < 1 %). At
+        most 6 iterations, and it stops once f has moved by twice converged_max_lens_model_change
+        (the verdict is made: 3-6 % after one or two iterations there), so a value above the bound
+        is how far f moved at least. NaN when the alternative does not solve."""
         with_distortion = not self.config.estimate_distortion
         try:
             alt = bundle_adjust(
@@ -619,6 +621,7 @@ class KeyframeBundleSolver:
                 initial_damping=self.config.ba_initial_damping,
                 distortion="shared" if with_distortion else False,
                 analyse=False,
+                max_focal_change=2.0 * self.config.converged_max_lens_model_change,
             )
         except (SelfCalibrationError, ValueError, np.linalg.LinAlgError):
             return math.nan
