@@ -151,9 +151,11 @@ def _tangent_bases(X: Array) -> Array:
 
 def initial_rays(obs: BundleObservations | _PreparedObservations, K: Array, R: Array, n_rays: int) -> Array:
     """Unit rays by back-projection X = R_i^T K_i^-1 x through each frame, averaged (section 5.1)."""
-    Kinv = np.linalg.inv(K)
+    # R_i^T K_i^-1 once per frame, then one 3x3 product per observation (a three-operand einsum over
+    # the observations took 8x longer)
+    M = np.swapaxes(R, 1, 2) @ np.linalg.inv(K)
     xh = np.column_stack([obs.xy, np.ones(len(obs.xy))])
-    d = np.einsum("nji,njk,nk->ni", R[obs.frame_idx], Kinv[obs.frame_idx], xh)
+    d = np.einsum("nij,nj->ni", M[obs.frame_idx], xh)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     X = np.stack([np.bincount(obs.ray_idx, weights=d[:, c], minlength=n_rays) for c in range(3)], axis=1)
     norm = np.linalg.norm(X, axis=1, keepdims=True)
