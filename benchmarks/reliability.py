@@ -327,10 +327,17 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float, block
             pids = {n: p.pid for n, p in nodes.items()}
             blocks = Blocks(feeder, {**pids, "feeder": os.getpid()}, block_s)
             r = rh.overload_scenario(feeder, pids, seconds, on_sample=blocks.sample)
+            blocks.threads_end()  # (the run and the scenario's 3 s for the last frames in flight)
             feeder.spin(1.0)
             d = feeder.diagnostics
             ingest, tracker = d["frame_ingest"], d["homography_tracker"]
             shed_dds = r["sent"] - int(ingest["frames_in"])
+            taken = {
+                "frame_ingest": int(ingest["frames_in"]),
+                "homography_tracker": int(tracker["frames_in"]),
+                "calibrator": r["calibrated"],
+                "feeder": r["sent"],
+            }
             lines += [
                 "",
                 f"3. Overload: 1920x1080 JPEG at 60 frames/s for {seconds:.0f} s (best effort), "
@@ -357,6 +364,7 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float, block
                 f"{ingest.get('encoder_wait_expired', 0)}",
                 *stages.lines(feeder),
                 *blocks.lines(r, stages),
+                blocks.thread_line(taken),
             ]
         finally:
             feeder.close()
@@ -366,6 +374,21 @@ def _machine_busy_s() -> float:
     """CPU seconds the whole machine was busy (all CPUs: /proc/stat minus idle and iowait)."""
     fields = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
     return (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")
+
+
+def _thread_cpu_s(pid: int) -> tuple[float, float]:
+    """(main thread, all other threads) CPU seconds of a process: Python's executor runs on the main thread
+    of a node, DDS's receive/event threads (and worker threads) are the others."""
+    main = other = 0.0
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # a thread that ended meanwhile
+            continue
+        cpu = (int(fields[11]) + int(fields[12])) / tick
+        main, other = (main + cpu, other) if int(task.name) == pid else (main, other + cpu)
+    return main, other
 
 
 class Blocks:
@@ -379,6 +402,8 @@ class Blocks:
         self.marks: list[tuple[float, dict[str, float], float, dict[str, dict[str, str]]]] = []
         self._mark(0.0)
         self.last = self.marks[0]
+        self.threads = [{name: _thread_cpu_s(pid) for name, pid in pids.items()}]
+        self.threads_at = [time.monotonic()]
 
     def _mark(self, t: float) -> None:
         cpu = {name: rh.cpu_seconds(pid) for name, pid in self.pids.items()}
@@ -389,6 +414,25 @@ class Blocks:
         self._mark(t)
         if t < (len(self.marks) - 1) * self.block_s:  # not a block boundary: only the latest sample
             self.last = self.marks.pop()
+
+    def threads_end(self) -> None:
+        """Per-thread CPU at the end of the run (call before the feeder's drain)."""
+        self.threads.append({name: _thread_cpu_s(pid) for name, pid in self.pids.items()})
+        self.threads_at.append(time.monotonic())
+
+    def thread_line(self, frames: dict[str, int]) -> str:
+        dt = self.threads_at[1] - self.threads_at[0]
+        parts = []
+        for name in self.pids:
+            (m0, o0), (m1, o1) = self.threads[0][name], self.threads[1][name]
+            n = frames.get(name)
+            per = f", {1e3 * (m1 - m0) / n:.1f} + {1e3 * (o1 - o0) / n:.1f} ms per frame taken" if n else ""
+            parts.append(f"{name} {100 * (m1 - m0) / dt:.0f} + {100 * (o1 - o0) / dt:.0f} %{per}")
+        head = (
+            "   CPU over the run and 3 s after, main (Python executor) + other threads (DDS, workers), % of "
+            "a core: "
+        )
+        return head + "; ".join(parts)
 
     def lines(self, r: dict, stages: StageTimes) -> list[str]:
         if self.last[0] > self.marks[-1][0]:  # the partial block at the end (its last sample in the run)
@@ -448,7 +492,7 @@ class Blocks:
         t, p95, others = (np.asarray(v, float) for v in zip(*rows))
         calm = others < quiet
         out = []
-        if calm.sum() >= 3:
+        if calm.sum() >= 2:
             slope = np.polyfit(t[calm] / 60.0, p95[calm], 1)[0]
             out.append(
                 f"   blocks with other jobs < {quiet:.0f} % of a core: {calm.sum()} of {len(rows)}, p95 "
