@@ -289,7 +289,7 @@ def test_pair_elimination_with_shared_unknowns_and_distortion() -> None:
     assert pair.iterations == dense.iterations
 
 
-def test_max_focal_change_stops_once_f_has_moved_that_far() -> None:
+def test_max_focal_change_and_no_uncertainty() -> None:
     """From a focal length 8% off, the adjustment with max_focal_change=0.02 stops at the first
     accepted step that moves f beyond 2%, long before it converges; without it, it converges."""
     seq = paper_sequence("A", 0.3, seed=6)
@@ -299,6 +299,10 @@ def test_max_focal_change_stops_once_f_has_moved_that_far() -> None:
     assert full.message == "converged" and short.message == "focal length moved beyond max_focal_change"
     assert short.iterations < full.iterations
     assert np.max(np.abs(short.focal / K[:, 1, 1] - 1.0)) > 0.02
+    # without the uncertainty (no covariance at the end): the same solution, sigmas NaN
+    bare = bundle_adjust(seq.observations(), K, R, seq.image_size, SQUARE_CONSTANT_PP, uncertainty=False)
+    np.testing.assert_array_equal(bare.K, full.K)
+    assert np.all(np.isnan(bare.sigma_f)) and np.all(np.isfinite(full.sigma_f))
 
 
 def test_sparse_and_dense_elimination_give_the_same_solution_and_uncertainty() -> None:

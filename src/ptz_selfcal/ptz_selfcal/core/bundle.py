@@ -814,6 +814,7 @@ def bundle_adjust(
     curve_degree: int = 2,
     initial_damping: float = 1e-6,
     max_focal_change: float | None = None,
+    uncertainty: bool = True,
 ) -> SelfCalibrationResult:
     """MLE (eq. 26) or, with pp_prior = (mean (2,), sigma (2,)) in pixels, MAP (eq. 27) calibration.
 
@@ -842,6 +843,8 @@ def bundle_adjust(
     max_focal_change: stop (message "focal length moved beyond max_focal_change") once an accepted
     step leaves a focal length further than this fraction from its start: for a caller that only
     asks whether f moves (calibration_state's lens-model check), not where it ends.
+    uncertainty: False skips the covariance (an undamped Jacobian and reduced system at the
+    solution, about one more iteration): sigma_f, sigma_pp, sigma_lam and "covariance" are NaN.
     """
     if distortion not in (False, True, "frame", "curve", "shared"):
         raise ValueError(f"distortion must be False, True, 'frame', 'curve' or 'shared', not {distortion!r}")
@@ -915,6 +918,7 @@ def bundle_adjust(
         schur,
         initial_damping,
         max_focal_change,
+        uncertainty,
     )
     if analyse:
         result.motion = analyse_motion(
@@ -957,6 +961,7 @@ def _levenberg_marquardt(
     schur: str,
     initial_damping: float = 1e-6,
     max_focal_change: float | None = None,
+    uncertainty: bool = True,
 ) -> SelfCalibrationResult:
     """Sparse LM with Marquardt's diagonal damping and Nielsen's damping update."""
     r, Y = _residuals(state, obs)
@@ -1015,12 +1020,15 @@ def _levenberg_marquardt(
             break
 
     # Uncertainty from the undamped reduced system at the solution (rays marginalised).
-    J_cam, J_ray = _jacobians(state, obs, Y, layout)
-    ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, coupling)
     n_obs = r.shape[1]
     dof = max(2 * n_obs + len(prior_terms[0]) - layout.n_params - 2 * n_rays, 1)
     variance = cost / dof
-    cov = _reduced_covariance(ne) * variance
+    if uncertainty:
+        J_cam, J_ray = _jacobians(state, obs, Y, layout)
+        ne = _normal_equations(r, J_cam, J_ray, obs, layout, n_rays, prior_terms, coupling)
+        cov = _reduced_covariance(ne) * variance
+    else:
+        cov = np.full((layout.n_params, layout.n_params), np.nan)
     sd = np.append(np.sqrt(np.maximum(np.diag(cov), 0.0)), 0.0)
     idx = np.where(layout.intr_index >= 0, layout.intr_index, len(sd) - 1)
     sigma_f = sd[idx[:, F]]
