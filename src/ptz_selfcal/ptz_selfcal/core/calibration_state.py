@@ -169,10 +169,10 @@ class SessionConfig:
     # needs them (issue-6 bag replayed: focal median 0.32% with 50, 0.22% with 200)
     ba_distortion_points_per_pair: int = 200
     ba_max_iterations: int = 30
-    # the adjustment stops when an iteration lowers its cost by less than this fraction: 1e-6 leaves
-    # every unknown within ~sqrt(1e-6 dof) ~ 0.05 of its 1-sigma of the minimum (dof ~ 2 x matches);
-    # the former 1e-10 spent a third of a warm-started adjustment's iterations creeping along the
-    # near-ambiguity of a pan before its loop closes (real sets: same final f to 0.001 %)
+    # the adjustment stops when an iteration lowers its cost by less than this fraction: a step worth
+    # < 1e-6 of the cost moved the unknowns by ~sqrt(1e-6 dof) ~ 0.1 of their 1-sigma at most (dof ~
+    # 1e4 residuals); the former 1e-10 spent a third of a warm-started adjustment's iterations
+    # creeping along the near-ambiguity of a pan before its loop closes (real sets: same final f)
     ba_tolerance: float = 1e-6
     # LM's starting damping in the adjustment (bundle_adjust initial_damping): 1e-6 crept along a
     # pan's near-ambiguity (real sets: 66-91 iterations over a set instead of 42-77, same solutions)
@@ -270,6 +270,8 @@ class KeyframeBundleSolver:
     fit to ~0.05-0.15 px, and a prior weighed for the printed 1 px noise acts as a ~10x too strong
     prior that pulls the principal point (and, near the ambiguity of a long focal length, f) to the
     image centre. `lens_estimate` keeps the last such solution for the hook. Keyframe id None = the reference.
+    A fixed lens's solves after the first start the adjustment from the previous one (_warm_start)
+    rather than from LM, and its lens-model check runs only when the session asks for it.
     """
 
     def __init__(self, config: SessionConfig, matches: OrderedDict[tuple[int, int], KeyframeMatchSet]):
@@ -1525,6 +1527,7 @@ class CalibratorSession:
             self.keyframe_zoom = keyframe_zoom
             self._sampled_keyframes = sampled
             self.solver.shared_lam = shared_lam if self.config.fixed_lens else None
+            self.solver._warm = None  # the next solve starts from LM on the restored keyframes
             self._seen_keyframes = set(keyframe_zoom)
             self.last_good = last_good
             if calibrator is not None:
