@@ -8,7 +8,9 @@ each node process), latency percentiles and the time to recover:
    encoders, duplicate/out-of-order/far-future image stamps) between good frames, three node processes.
 2. Tracking loss: black frames, heavy blur, a scene cut, a 90 deg preset move at full zoom (rendered PTZ
    views with exact ground truth): statuses and focal error while lost, error before/after, recovery.
-3. Overload: 1920x1080 JPEG at 60 frames/s (best effort, like a camera driver), latest-wins policy.
+3. Overload: 1920x1080 JPEG at 60 frames/s (best effort, like a camera driver), latest-wins policy; per
+   10 s block the latency p95, each stage's p95, the CPU of each node, of the feeder and of other jobs on
+   the machine, and the tracker's map counters: whether the latency is bounded and what it follows.
 4. Soak: --core-frames (default 100,000) through the calibrator core's per-frame path, and --graph-frames
    (default 20,000, 320x180 images) through the three node processes.
 5. Restarts: kill -9 of each node during `ptz-selfcal launch` (state_dir, zoom model).
@@ -16,7 +18,8 @@ each node process), latency percentiles and the time to recover:
 The experiments are the same code as the CI tests (tests/reliability/reliability_harness.py), larger.
 Writes benchmarks/results/reliability.txt (and prints it). Usage:
     ros2_ws/venv/bin/python benchmarks/reliability.py [--core-frames 100000] [--graph-frames 20000]
-        [--overload-seconds 30] [--only bad_input tracking_loss overload core_soak graph_soak restarts]
+        [--overload-seconds 30] [--overload-views 24 [240]]
+        [--only bad_input tracking_loss overload core_soak graph_soak restarts]
 """
 
 from __future__ import annotations
@@ -309,7 +312,12 @@ def tracking_loss(domain: Domain, work: Path, lines: list[str]) -> None:
             feeder.close()
 
 
-def overload(domain: Domain, work: Path, lines: list[str], seconds: float, block_s: float = 10.0) -> None:
+def overload(
+    domain: Domain, work: Path, lines: list[str], seconds: float, views: int = 24, block_s: float = 10.0
+) -> None:
+    """`views` distinct views cycled at 60 frames/s: the sweep's pan (+-3 deg), tilt (+-1 deg, twice as
+    fast) and zoom (1-1.1x) oscillate at 60 / views Hz (24, the CI test's: 2.5 Hz, peak pan speed 47 deg/s,
+    far from a constant-velocity motion; 240: 0.25 Hz, 4.7 deg/s, a realistic patrol)."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     latest = ("queue_policy:=latest", "queue_depth:=1")
@@ -326,7 +334,7 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float, block
             feeder.wait_connected(compressed=True)
             pids = {n: p.pid for n, p in nodes.items()}
             blocks = Blocks(feeder, {**pids, "feeder": os.getpid()}, block_s)
-            r = rh.overload_scenario(feeder, pids, seconds, on_sample=blocks.sample)
+            r = rh.overload_scenario(feeder, pids, seconds, distinct=views, on_sample=blocks.sample)
             blocks.threads_end()  # (the run and the scenario's 3 s for the last frames in flight)
             feeder.spin(1.0)
             d = feeder.diagnostics
@@ -341,7 +349,9 @@ def overload(domain: Domain, work: Path, lines: list[str], seconds: float, block
             lines += [
                 "",
                 f"3. Overload: 1920x1080 JPEG at 60 frames/s for {seconds:.0f} s (best effort), "
-                "queue_policy latest (depth 1) in frame_ingest and homography_tracker, working width 640",
+                "queue_policy latest (depth 1) in frame_ingest and homography_tracker, working width 640; "
+                f"{views} views cycled (pan +-3 deg at {60 / views:.2f} Hz, peak "
+                f"{3 * 2 * math.pi * 60 / views:.1f} deg/s)",
                 f"   frames in {r['sent']} ({r['rate']:.1f}/s), frames calibrated {r['calibrated']} "
                 f"({r['calibrated'] / r['elapsed']:.1f}/s), duplicates {r['duplicates']}",
                 f"   skipped and why: {shed_dds} shed by the latest-wins image queue before frame_ingest "
@@ -669,6 +679,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--core-frames", type=int, default=100_000)
     parser.add_argument("--graph-frames", type=int, default=20_000)
     parser.add_argument("--overload-seconds", type=float, default=30.0)
+    parser.add_argument(
+        "--overload-views", type=int, nargs="+", default=[24], help="one overload run per number of views"
+    )
     parser.add_argument("--only", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "reliability.txt")
     args = parser.parse_args(argv)
@@ -686,7 +699,8 @@ def main(argv: list[str] | None = None) -> int:
                 elif name == "tracking_loss":
                     tracking_loss(domain, work, lines)
                 elif name == "overload":
-                    overload(domain, work, lines, args.overload_seconds)
+                    for views in args.overload_views:
+                        overload(domain, work, lines, args.overload_seconds, views)
                 elif name == "core_soak":
                     core_soak(lines, args.core_frames)
                 elif name == "graph_soak":
