@@ -460,3 +460,18 @@ def test_map_prior_is_weighed_with_the_measured_image_noise(seed: int) -> None:
     assert outs[-1].status == cs.CONVERGED
     assert 0.1 < session.solver.noise_estimate < 0.2
     assert np.hypot(*(outs[-1].K[:2, 2] - PP)) < 8.0
+
+
+def test_restore_refuses_another_focal_model_and_keeps_the_noise_weight(calibrated, tmp_path) -> None:
+    session = calibrated[0]
+    session.state_dir = tmp_path
+    session.save()
+    assert session.solver.noise_estimate is not None
+    fixed = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0, focal_model="constant"))
+    fixed.state_dir = tmp_path
+    messages = fixed.restore()
+    assert any(m.startswith("WARNING") and "focal_model" in m for m in messages), messages
+    assert fixed.calibrator is None  # starts fresh: a zoom lens's keyframes are not one K
+    same = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    same.restore()
+    assert same.solver.noise_estimate == pytest.approx(session.solver.noise_estimate)

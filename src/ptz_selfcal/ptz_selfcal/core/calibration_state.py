@@ -1473,6 +1473,8 @@ class CalibratorSession:
                     else {"K": last.K.tolist(), "D": last.D.tolist(), "sigma_f": float(last.sigma_f)},
                     "calibrator": None if self.calibrator is None else self.calibrator.to_dict(),
                     "shared_lam": self.solver.shared_lam,  # a fixed lens's distortion (None: none)
+                    "focal_model": self.config.focal_model,
+                    "noise_estimate": self.solver.noise_estimate,  # the eq. 27 prior's weight
                 }
             )
 
@@ -1480,6 +1482,12 @@ class CalibratorSession:
         """Restore from `to_dict` output; StateFileError when it does not fit."""
         if data.get("version") != STATE_VERSION:
             raise StateFileError(f"state version {data.get('version')!r}, expected {STATE_VERSION}")
+        saved_model = data.get("focal_model", "varying")
+        if saved_model != self.config.focal_model:
+            # one K for every frame is not a zoom lens's calibration, nor the reverse
+            raise StateFileError(
+                f"state saved with focal_model {saved_model!r}, configured {self.config.focal_model!r}"
+            )
         try:
             size = data.get("image_size")
             image_size = (int(size[0]), int(size[1])) if size else None
@@ -1514,6 +1522,8 @@ class CalibratorSession:
             shared_lam = None if shared_lam is None else float(shared_lam)
             if shared_lam is not None and not math.isfinite(shared_lam):
                 raise StateFileError("shared_lam is not finite")
+            noise = data.get("noise_estimate")
+            noise = None if noise is None or not 0.0 < float(noise) < math.inf else float(noise)
             ref_kf = data.get("reference_keyframe_id")
         except StateFileError:
             raise
@@ -1526,7 +1536,9 @@ class CalibratorSession:
             self.calibrator = calibrator
             self.keyframe_zoom = keyframe_zoom
             self._sampled_keyframes = sampled
-            self.solver.shared_lam = shared_lam if self.config.fixed_lens else None
+            fixed_distortion = self.config.fixed_lens and self.config.estimate_distortion
+            self.solver.shared_lam = shared_lam if fixed_distortion else None
+            self.solver.noise_estimate = noise
             self.solver._warm = None  # the next solve starts from LM on the restored keyframes
             self._seen_keyframes = set(keyframe_zoom)
             self.last_good = last_good
