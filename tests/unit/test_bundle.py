@@ -395,10 +395,36 @@ def test_keyframe_solver_refines_lm_with_bundle_adjustment() -> None:
 # ---------------------------------------------------------------------------------------------------
 
 
+def _distorted_pair_matches(K, R, lam, pp, f, size, rng, noise: float) -> list:
+    """Matches (i, j, x_i, x_j) of keyframe pairs (i, i+1), (i, i+2) on DISTORTED pixels (division model
+    lam[i] about pp[i], radius / f[i]), at most 60 per pair, with Gaussian noise on both sides."""
+    from ptz_selfcal.core.distortion import division_distort, division_undistort
+
+    n, (width, height) = len(K), size
+    pairs = []
+    for i in range(n):
+        for j in (i + 1, i + 2):
+            if j >= n:
+                continue
+            xd = rng.uniform((0, 0), (width - 1, height - 1), (300, 2))
+            xu = division_undistort(xd, lam[i], pp[i], f[i])
+            X = (np.linalg.inv(K[i]) @ np.column_stack([xu, np.ones(len(xu))]).T).T @ R[i]
+            y = X @ (K[j] @ R[j]).T
+            xj = division_distort(y[:, :2] / y[:, 2:], lam[j], pp[j], f[j])
+            ok = (
+                np.isfinite(xj).all(axis=1)
+                & (xj >= 0).all(axis=1)
+                & (xj <= (width - 1, height - 1)).all(axis=1)
+            )
+            k = np.flatnonzero(ok & (y[:, 2] > 0))[:60]
+            noisy = noise * rng.standard_normal((2, len(k), 2))
+            pairs.append((i, j, xd[k] + noisy[0], xj[k] + noisy[1]))
+    return pairs
+
+
 def _distorted_keyframe_pairs(corner_shift: float, pp_offset=(15.0, -10.0), noise=0.0, n=16, seed=0):
     """Keyframe-pair matches of a 1280x720 PTZ camera zooming 1x -> 3x (core/render.CameraProfile, lam
     shrinking as 1/f) on DISTORTED pixels, each ray seen in two keyframes (i, i+1) or (i, i+2)."""
-    from ptz_selfcal.core.distortion import division_distort, division_undistort
     from ptz_selfcal.core.render import CameraProfile
 
     width, height = 1280, 720
@@ -408,31 +434,7 @@ def _distorted_keyframe_pairs(corner_shift: float, pp_offset=(15.0, -10.0), nois
     K = np.array([state.K(i) for i in range(n)])
     R = np.array([state.R(i) for i in range(n)])
     rng = np.random.default_rng(seed)
-    pairs = []
-    for i in range(n):
-        for j in (i + 1, i + 2):
-            if j >= n:
-                continue
-            xd = rng.uniform((0, 0), (width - 1, height - 1), (300, 2))
-            xu = division_undistort(xd, state.lam[i], state.pp[i], state.f[i])
-            X = (np.linalg.inv(K[i]) @ np.column_stack([xu, np.ones(len(xu))]).T).T @ R[i]
-            y = X @ (K[j] @ R[j]).T
-            xj = division_distort(y[:, :2] / y[:, 2:], state.lam[j], state.pp[j], state.f[j])
-            ok = (
-                np.isfinite(xj).all(axis=1)
-                & (xj >= 0).all(axis=1)
-                & (xj <= (width - 1, height - 1)).all(axis=1)
-            )
-            ok &= y[:, 2] > 0
-            k = np.flatnonzero(ok)[:60]
-            pairs.append(
-                (
-                    i,
-                    j,
-                    xd[k] + noise * rng.standard_normal((len(k), 2)),
-                    xj[k] + noise * rng.standard_normal((len(k), 2)),
-                )
-            )
+    pairs = _distorted_pair_matches(K, R, state.lam, state.pp, state.f, (width, height), rng, noise)
     R_rel = np.einsum("nij,kj->nik", R, R[0])
     return pair_observations(pairs), K, R_rel, state, (width, height)
 
@@ -546,9 +548,7 @@ def _fixed_lens_pan_pairs(corner_shift: float, tilt_deg: float = 0.0, noise=0.0,
     centre, division distortion with the given corner shift) panning 6 deg per keyframe about the
     vertical (pan only unless tilt_deg), on DISTORTED pixels."""
     from ptz_selfcal.core.distortion import (
-        division_distort,
         division_lambda_for_corner_shift,
-        division_undistort,
     )
     from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
 
@@ -559,30 +559,10 @@ def _fixed_lens_pan_pairs(corner_shift: float, tilt_deg: float = 0.0, noise=0.0,
     tilt = np.radians(tilt_deg) * np.sin(np.linspace(0.0, np.pi, n))
     R = np.array([ptz_rotation(np.radians(6.0 * i), tilt[i]) for i in range(n)])
     rng = np.random.default_rng(seed)
-    pairs = []
-    for i in range(n):
-        for j in (i + 1, i + 2):
-            if j >= n:
-                continue
-            xd = rng.uniform((0, 0), (width - 1, height - 1), (300, 2))
-            xu = division_undistort(xd, lam, pp, f)
-            X = (np.linalg.inv(K) @ np.column_stack([xu, np.ones(len(xu))]).T).T @ R[i]
-            y = X @ (K @ R[j]).T
-            xj = division_distort(y[:, :2] / y[:, 2:], lam, pp, f)
-            ok = (
-                np.isfinite(xj).all(axis=1)
-                & (xj >= 0).all(axis=1)
-                & (xj <= (width - 1, height - 1)).all(axis=1)
-            )
-            k = np.flatnonzero(ok & (y[:, 2] > 0))[:60]
-            pairs.append(
-                (
-                    i,
-                    j,
-                    xd[k] + noise * rng.normal(size=(len(k), 2)),
-                    xj[k] + noise * rng.normal(size=(len(k), 2)),
-                )
-            )
+    Kn = np.repeat(K[None], n, axis=0)
+    pairs = _distorted_pair_matches(
+        Kn, R, np.full(n, lam), np.repeat(pp[None], n, axis=0), np.full(n, f), (width, height), rng, noise
+    )
     R_rel = np.einsum("nij,kj->nik", R, R[0])
     return pair_observations(pairs), np.repeat(K[None], n, axis=0), R_rel, lam, (width, height)
 
