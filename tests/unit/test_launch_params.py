@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import yaml
 
 from ptz_selfcal.tools.launch import namespaced_params_file
@@ -81,3 +82,16 @@ def test_default_yaml_lists_every_node_parameter_with_its_default_and_a_descript
         assert set(listed) <= {p.name for p in params}, (key, set(listed) - {p.name for p in params})
     for p in homography_tracker.tracker_params():  # every TrackerConfig field, revisit_* included
         assert p.description.strip() and p.check is not None, p.name
+
+
+def test_tracker_string_parameters_accept_only_their_choices():
+    """An unknown klt_source ran silently as "warped"; now the node refuses it (and the core too)."""
+    from ptz_selfcal.core.tracker import TRACKER_CHOICES, TrackerConfig
+    from ptz_selfcal.nodes import homography_tracker
+
+    checks = {p.name: p.check for p in homography_tracker.tracker_params()}
+    for field, allowed in TRACKER_CHOICES.items():
+        assert all(checks[f"tracker.{field}"](v) is None for v in allowed)
+        assert "must be one of" in checks[f"tracker.{field}"]("bogus")
+        with pytest.raises(ValueError, match=field):
+            TrackerConfig(**{field: "bogus"})

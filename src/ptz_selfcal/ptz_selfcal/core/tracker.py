@@ -74,6 +74,13 @@ class TrackingState(StrEnum):
     TEXTURELESS = "TEXTURELESS"
 
 
+# The string fields of TrackerConfig and the values each accepts.
+TRACKER_CHOICES: dict[str, tuple[str, ...]] = {
+    "klt_source": ("warped", "keyframe", "frame"),
+    "descriptor": ("orb", "sift"),
+}
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     working_scale: float = 0.5  # working / full resolution the node should downscale to
@@ -117,6 +124,11 @@ class TrackerConfig:
     verify_threshold: float = 16.0  # fits further than this from the prediction are checked by descriptors
     gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, allowed in TRACKER_CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, not {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

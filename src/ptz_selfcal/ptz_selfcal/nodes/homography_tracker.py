@@ -40,6 +40,7 @@ from rclpy.node import Node
 from ptz_selfcal import topics
 from ptz_selfcal.core.atomic_file import atomic_write_bytes, remove_stale_temporaries
 from ptz_selfcal.core.tracker import (
+    TRACKER_CHOICES,
     HomographyTracker,
     TrackerConfig,
     TrackingState,
@@ -146,8 +147,11 @@ def tracker_params() -> list[Param]:
 
 
 def _tracker_check(name: str, default: Any) -> Any:
+    if isinstance(default, str):
+        return one_of(*TRACKER_CHOICES.get(name, (default,)))
+
     def check(value: Any) -> str | None:
-        if isinstance(default, bool | str):
+        if isinstance(default, bool):
             return None
         values = value if isinstance(value, list | tuple) else [value]
         for v in values:
