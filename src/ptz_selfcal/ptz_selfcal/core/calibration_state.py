@@ -559,7 +559,7 @@ class KeyframeBundleSolver:
                 with contextlib.suppress(
                     SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError
                 ):
-                    transfer = self.config.intrinsics_model() if fixed else IntrinsicsModel()
+                    transfer = self.config.intrinsics_model()  # IntrinsicsModel() for a zoom lens
                     K_j = intrinsics_from_transferred_diac(H_kj, K[k], transfer, image_size)
                     R_j = rotation_from_homography(H_kj, K[k], K_j) @ R[k]
                     if np.all(np.isfinite(K_j)) and np.all(np.isfinite(R_j)):
