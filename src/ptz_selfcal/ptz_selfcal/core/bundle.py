@@ -959,9 +959,9 @@ def _levenberg_marquardt(
     tolerance: float,
     model: IntrinsicsModel,
     schur: str,
-    initial_damping: float = 1e-6,
-    max_focal_change: float | None = None,
-    uncertainty: bool = True,
+    initial_damping: float,
+    max_focal_change: float | None,
+    uncertainty: bool,
 ) -> SelfCalibrationResult:
     """Sparse LM with Marquardt's diagonal damping and Nielsen's damping update."""
     r, Y = _residuals(state, obs)
