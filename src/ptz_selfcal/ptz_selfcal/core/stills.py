@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from ptz_selfcal.core.features import Descriptors, robust_homography, usac_params
 from ptz_selfcal.core.geometry import apply_homography
 from ptz_selfcal.core.intrinsics import image_centre
+from ptz_selfcal.core.linear_selfcal import normalise_homographies, normalising_transform
 from ptz_selfcal.core.tracker import KeyframeLink, TrackingState, TrackResult
 
 Array = NDArray[np.float64]
@@ -375,9 +376,7 @@ def linear_focal(H: Array, size: tuple[float, float], bounds: tuple[float, float
     w = size[0]
     if not len(H):
         return w
-    cx, cy = image_centre(size)
-    N = np.array([[1.0 / w, 0.0, -cx / w], [0.0, 1.0 / w, -cy / w], [0.0, 0.0, 1.0]])
-    Hn = _unit_det_batch(N @ H @ np.linalg.inv(N))
+    Hn = normalise_homographies(H, normalising_transform(image_centre(size), w))
     h1, h2, h3 = Hn[:, :, 0], Hn[:, :, 1], Hn[:, :, 2]
     outer = np.einsum("ni,nj->nij", h1, h1) + np.einsum("ni,nj->nij", h2, h2)
     A = outer - np.diag([1.0, 1.0, 0.0])
@@ -427,10 +426,6 @@ def path_rotations(edges: list[_Edge], R_edge: Array, n: int) -> tuple[Array, In
             R[:, other] = step @ R[:, k]
             queue.append(other)
     return R, hops
-
-
-def _unit_det_batch(H: Array) -> Array:
-    return H / np.cbrt(np.linalg.det(H))[:, None, None]
 
 
 def overlap_fractions(H: Array, size_old: ArrayLike, size_new: tuple[float, float], grid: int) -> Array:
