@@ -449,10 +449,7 @@ class HomographyTracker:
         c = self.config
         if inlier_count < c.keyframe_min_track_fraction * self._tracks.initial_count:
             return True
-        scale_change = _local_scale(H_work, shape)
-        if max(scale_change, 1.0 / scale_change) > c.keyframe_max_scale_change:
-            return True
-        return _overlap(np.linalg.inv(H_work), shape) < c.keyframe_min_overlap
+        return self._needs_keyframe_after(H_work, shape)
 
     # ------------------------------------------------------------------ keyframes
     def _start_map(self, image: np.ndarray, stamp: float | None) -> TrackResult:
@@ -566,7 +563,8 @@ class HomographyTracker:
         )  # fmt: skip
 
     def _needs_keyframe_after(self, H_work: Array, shape: tuple[int, ...]) -> bool:
-        """_needs_keyframe for a freshly measured keyframe -> frame H (all tracks new: scale and overlap)."""
+        """The scale and overlap tests of _needs_keyframe (alone: a freshly measured keyframe -> frame H,
+        all tracks new)."""
         c = self.config
         scale_change = _local_scale(H_work, shape)
         if max(scale_change, 1.0 / scale_change) > c.keyframe_max_scale_change:
