@@ -319,7 +319,7 @@ class KeyframeBundleSolver:
         if warm is not None:
             self.last_method, self.last_message = warm.method, ""
             result = self._refine(H, image_size, warm, keyframes)
-            if result is warm or not (result.ok or _uncertain_motion(result)):
+            if result is warm or not _usable(result):
                 result = None  # LM on eq. 22 and the adjustment from it, as for the first solve
         if result is None:
             # LM on <= max_keyframes + 1 homographies takes milliseconds: the calibrator's time-derived
@@ -377,7 +377,7 @@ class KeyframeBundleSolver:
 
     def _keep_warm_start(self, result: SelfCalibrationResult, keyframes: list[Keyframe]) -> None:
         """Remember an accepted adjustment (reference, K, keyframe id -> R) for _warm_start."""
-        adjusted = "rays" in result.info and (result.ok or _uncertain_motion(result))
+        adjusted = "rays" in result.info and _usable(result)
         if not (self.config.fixed_lens and adjusted and np.all(np.isfinite(result.R))):
             return
         held = {kf.keyframe_id: R.copy() for kf, R in zip(keyframes, result.R[1:])}
@@ -536,11 +536,7 @@ class KeyframeBundleSolver:
         if lam0 is None and result.ok:
             self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
         rel_sigma = float(np.ravel(result.sigma_f)[0]) / float(result.K[0, 1, 1])
-        if (
-            fixed
-            and (result.ok or _uncertain_motion(result))
-            and rel_sigma <= self.config.converged_max_sigma_f
-        ):
+        if fixed and _usable(result) and rel_sigma <= self.config.converged_max_sigma_f:
             # only when it can decide (above that sigma the solution is not CONVERGED anyway)
             self._lens_check = (pairs, result, image_size, model, prior, noise)
         if absent or len(lm.K) > n_frames:
@@ -697,6 +693,11 @@ def _linked_to_reference(pairs: list[tuple[int, int, Array, Array]], n: int) -> 
                 linked[k] = True
                 stack.append(k)
     return linked
+
+
+def _usable(result: SelfCalibrationResult) -> bool:
+    """Accepted, or finite and flagged only for the near-ambiguity: a solution kept with its sigma."""
+    return result.ok or _uncertain_motion(result)
 
 
 def _uncertain_motion(result: SelfCalibrationResult) -> bool:
