@@ -383,6 +383,10 @@ class KeyframeBundleSolver:
         held = {kf.keyframe_id: R.copy() for kf, R in zip(keyframes, result.R[1:])}
         self._warm = (self.reference_keyframe_id, result.K[0].copy(), held)
 
+    def forget_warm_start(self) -> None:
+        """The next solve starts from LM on eq. 22 (a new map or restored keyframes)."""
+        self._warm = None
+
     def _refine(
         self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
     ) -> SelfCalibrationResult:
@@ -1451,7 +1455,7 @@ class CalibratorSession:
         self.keyframe_zoom.clear()
         self._sampled_keyframes.clear()
         self.solver.reference_keyframe_id = None
-        self.solver._warm = None
+        self.solver.forget_warm_start()
         self._dirty = True
 
     # ----------------------------------------------------------------------------------------------
@@ -1540,7 +1544,7 @@ class CalibratorSession:
             fixed_distortion = self.config.fixed_lens and self.config.estimate_distortion
             self.solver.shared_lam = shared_lam if fixed_distortion else None
             self.solver.noise_estimate = noise
-            self.solver._warm = None  # the next solve starts from LM on the restored keyframes
+            self.solver.forget_warm_start()
             self._seen_keyframes = set(keyframe_zoom)
             self.last_good = last_good
             if calibrator is not None:
