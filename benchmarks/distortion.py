@@ -9,9 +9,9 @@ distortion moving the image corner by 12% of the half-diagonal at the wide end, 
    true undistorted homography reference -> keyframe, and LM self-calibration (eq. 22, constant pp) on
    the first 20 keyframes, for (a) the tracker's chained homographies of distorted points, (b) those
    corrected by a grid refit with the TRUE coefficients (distortion_estimation.undistorted_homography),
-   (c) core/lens_correction's chains of links refitted on undistorted inliers, with its own estimates
+   (c) lens/correction's chains of links refitted on undistorted inliers, with its own estimates
    and the distortion centre at the image centre, (d) the same with the true coefficients and centre.
-   Then the keyframe bundle adjustment with distortion (core/bundle.py) on the same raw matches: the
+   Then the keyframe bundle adjustment with distortion (bundle/adjust.py) on the same raw matches: the
    principal point as the distortion centre (per-keyframe lam, or the lam(f) curve the calibrator
    uses) against the centre held at the image centre. Then the OFF run's tracker output replayed
    inline through CalibratorSession + SessionLensHook.
@@ -44,15 +44,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ptz_selfcal.core.distortion import division_undistort, max_distortion_difference
-from ptz_selfcal.core.distortion_estimation import undistorted_homography
-from ptz_selfcal.core.geometry import apply_homography, normalise_homography, pixel_grid, ptz_rotation
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.intrinsics import IntrinsicsModel
-from ptz_selfcal.core.lens_correction import LensCorrection
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
-from ptz_selfcal.core.zoom_model import ZoomModel
+from ptz_selfcal.camera.distortion import division_undistort, max_distortion_difference
+from ptz_selfcal.camera.geometry import apply_homography, normalise_homography, pixel_grid, ptz_rotation
+from ptz_selfcal.camera.intrinsics import IntrinsicsModel
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.lens.correction import LensCorrection
+from ptz_selfcal.lens.estimation import undistorted_homography
+from ptz_selfcal.selfcal.lm import lm_selfcalibration
 from ptz_selfcal.tools.bagio import BagReader, deserialize
+from ptz_selfcal.zoom.model import ZoomModel
 
 ROOT = Path(__file__).resolve().parents[1]
 PANORAMA = ROOT / "bags" / "source" / "examplepano.jpg"
@@ -208,11 +208,11 @@ def keyframe_homographies(run: dict, lines: list[str]) -> None:
 
 
 def joint_bundle(run: dict, lines: list[str]) -> None:
-    """The keyframe bundle adjustment with distortion (core/bundle.py distortion=...) on the OFF run's
+    """The keyframe bundle adjustment with distortion (bundle/adjust.py distortion=...) on the OFF run's
     raw keyframe matches, all keyframes, from f +2%, the principal point at the image centre, lam = 0
     and the true rotations; MAP prior of eq. 27 (sigma 20 px) weighed with the noise of a first pass
-    (as core/calibration_state.KeyframeBundleSolver does)."""
-    from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior, pair_observations
+    (as online/session.KeyframeBundleSolver does)."""
+    from ptz_selfcal.bundle.adjust import bundle_adjust, default_pp_prior, pair_observations
 
     W, H = run["size"]
     ids = sorted(run["H"])
@@ -273,8 +273,8 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
     (no DDS, the worker's step after every keyframe) through CalibratorSession + SessionLensHook,
     with the frame's short keyframe -> frame homography corrected by the grid refit (as shipped) or
     left as tracked (distorted points) and composed with the keyframe's corrected chain."""
-    from ptz_selfcal.core import lens_correction
-    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
+    from ptz_selfcal.lens import correction as lens_correction
+    from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
 
     homographies, keyframes, gt = [], {}, {}
     with BagReader(bag) as reader:

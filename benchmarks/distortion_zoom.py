@@ -27,23 +27,23 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ptz_selfcal.core.distortion import (
+from ptz_selfcal.camera.distortion import (
     division_lambda_for_corner_shift,
     division_to_plumb_bob,
     division_undistort,
     max_distortion_difference,
 )
-from ptz_selfcal.core.distortion_estimation import (
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.lens.estimation import (
     DistortionVsFocal,
     KeyframeMatch,
     estimate_frame_distortion,
     estimate_keyframe_distortion,
     undistorted_homography,
 )
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
-from ptz_selfcal.core.zoom_model import ZoomModel
+from ptz_selfcal.selfcal.lm import lm_selfcalibration
+from ptz_selfcal.zoom.model import ZoomModel
 
 W, H = 1280, 720
 F_WIDE = 1108.5  # 60 degrees horizontal field of view

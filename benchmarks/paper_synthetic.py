@@ -39,18 +39,18 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior  # noqa: E402
-from ptz_selfcal.core.intrinsics import (  # noqa: E402
+from ptz_selfcal.bundle.adjust import bundle_adjust, default_pp_prior  # noqa: E402
+from ptz_selfcal.camera.intrinsics import (  # noqa: E402
     SQUARE_CONSTANT_PP,
     SQUARE_VARYING_PP,
     SelfCalibrationError,
     SelfCalibrationResult,
     image_centre,
 )
-from ptz_selfcal.core.linear_selfcal import linear_selfcalibration  # noqa: E402
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration  # noqa: E402
-from ptz_selfcal.core.metrics import pairwise_rotation_errors  # noqa: E402
-from ptz_selfcal.core.synthetic import SyntheticSequence, paper_sequence  # noqa: E402
+from ptz_selfcal.selfcal.linear import linear_selfcalibration  # noqa: E402
+from ptz_selfcal.selfcal.lm import lm_selfcalibration  # noqa: E402
+from ptz_selfcal.sim.metrics import pairwise_rotation_errors  # noqa: E402
+from ptz_selfcal.sim.synthetic import SyntheticSequence, paper_sequence  # noqa: E402
 
 SIGMAS = (0.25, 0.5, 1.0, 1.5, 2.0)
 CONFIGS = ("A", "B")
@@ -327,19 +327,19 @@ def format_drift(results: list[dict], drift: float, sigma: float) -> str:
     return "\n".join(lines)
 
 
-CORE = "src/ptz_selfcal/ptz_selfcal/core/"
+PKG = "src/ptz_selfcal/ptz_selfcal/"
 DEPENDENCIES = [
-    f"{CORE}{name}.py"
+    f"{PKG}{name}.py"
     for name in (
-        "bundle",
-        "synthetic",
-        "linear_selfcal",
-        "lm_selfcal",
-        "intrinsics",
-        "geometry",
-        "homography",
-        "degeneracy",
-        "metrics",
+        "bundle/adjust",
+        "sim/synthetic",
+        "selfcal/linear",
+        "selfcal/lm",
+        "camera/intrinsics",
+        "camera/geometry",
+        "frontend/homography",
+        "selfcal/degeneracy",
+        "sim/metrics",
     )
 ] + ["benchmarks/paper_synthetic.py"]
 

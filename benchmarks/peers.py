@@ -49,18 +49,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import opencv_peer
 
-from ptz_selfcal.core import metrics
-from ptz_selfcal.core.intrinsics import (
+from ptz_selfcal.camera.intrinsics import (
     IntrinsicsModel,
     ParamMode,
     SelfCalibrationError,
     image_centre,
     rotations_from_homographies,
 )
-from ptz_selfcal.core.stills import StillsConfig, StillsTracker
-from ptz_selfcal.core.tracker import (
+from ptz_selfcal.frontend.stills import StillsConfig, StillsTracker
+from ptz_selfcal.frontend.tracker import (
     HomographyTracker,
 )
+from ptz_selfcal.sim import metrics
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -122,8 +122,8 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 
 def render_sequence(name: str, spec: SynthSpec, n_frames: int, fps: float = FPS) -> Sequence:
-    """Render in-process with core.render (used when the synth command is not installed)."""
-    from ptz_selfcal.core import render
+    """Render in-process with sim.render (used when the synth command is not installed)."""
+    from ptz_selfcal.sim import render
 
     pano = render.build_panorama(cv2.imread(str(DATA / "panoramas" / spec.panorama), cv2.IMREAD_GRAYSCALE))
     profile = render.CameraProfile(
@@ -144,7 +144,7 @@ def render_sequence(name: str, spec: SynthSpec, n_frames: int, fps: float = FPS)
     ]
     K = np.array([state.K(i) for i in range(n_frames)])
     R = np.array([state.R(i) for i in range(n_frames)])
-    source = "core.render (in-process)"
+    source = "sim.render (in-process)"
     return Sequence(
         name, frames, np.arange(0, n_frames, STRIDE), K, R, source=source, distorted=spec.distortion > 0
     )
@@ -280,7 +280,7 @@ def track_sequence(
     seq: Sequence, on_frame: Callable | None = None, stills: StillsConfig | None = None
 ) -> Tracking:
     """Feed every frame to the tracker; on_frame(i, image, scale, result) runs inside the timing. The
-    real sets (stills) go through core/stills.StillsTracker (`stills`: its configuration, default its
+    real sets (stills) go through frontend/stills.StillsTracker (`stills`: its configuration, default its
     defaults), video through HomographyTracker."""
     tracker = StillsTracker(stills or StillsConfig()) if seq.fixed_focal else HomographyTracker()
     scale = working_scale(seq.size)
@@ -369,7 +369,7 @@ def transferred_observations(
 
     A grid point is a ray; it is observed in its own frame and wherever it lands inside another image.
     """
-    from ptz_selfcal.core.geometry import pixel_grid
+    from ptz_selfcal.camera.geometry import pixel_grid
 
     w, h = size
     g = pixel_grid(w, h, grid)
@@ -391,7 +391,7 @@ def transferred_observations(
 
 def link_observations(tracking: Tracking, idx: IntArray) -> tuple[IntArray, IntArray, Array]:
     """BA observations from the tracker's keyframe links between evaluation frames (real measurements)."""
-    from ptz_selfcal.core.bundle import pair_observations
+    from ptz_selfcal.bundle.adjust import pair_observations
 
     pos = {int(f): k for k, f in enumerate(idx)}
     links = {(lk.source_id, lk.target_id): lk for r in tracking.results for lk in r.links}
@@ -408,7 +408,7 @@ def bundle_rows(
     obs: tuple, size: tuple[int, int], inits: dict[str, tuple[Array, Array]]
 ) -> dict[str, Callable]:
     """MLE (eq. 26) and MAP (eq. 27) from the LM solutions; a fixed lens gets its own MAP row."""
-    from ptz_selfcal.core.bundle import bundle_adjust, default_pp_prior
+    from ptz_selfcal.bundle.adjust import bundle_adjust, default_pp_prior
 
     def run(model: IntrinsicsModel, init: tuple[Array, Array], prior=None) -> Callable:
         def fn() -> tuple[Array, Array]:
@@ -433,8 +433,8 @@ def bundle_rows(
 
 def paper_rows(seq: Sequence, tracking: Tracking) -> list[MethodResult]:
     """The paper's methods and OpenCV's autocalib helpers on the same (tracked) homographies."""
-    from ptz_selfcal.core.linear_selfcal import linear_selfcalibration
-    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+    from ptz_selfcal.selfcal.linear import linear_selfcalibration
+    from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
     idx, H = homographies_at(seq, tracking)
     size = seq.size
@@ -514,7 +514,7 @@ ONLINE = "ptz_selfcal online (nodes' tracker+calibrator)"
 def session_config(focal_model: str = "varying", fixed_lens_distortion: bool = False):
     """The calibrator node's configuration: its defaults, and focal_model / estimate_distortion as the
     node passes them (a fixed lens estimates its one distortion coefficient in the session)."""
-    from ptz_selfcal.core.calibration_state import SessionConfig
+    from ptz_selfcal.online.session import SessionConfig
 
     return SessionConfig(focal_model=focal_model, estimate_distortion=fixed_lens_distortion)
 
@@ -531,15 +531,15 @@ def run_session(
 
     focal_model "varying" (the node's default, a zooming camera) or "constant" (focal_model:=constant,
     a fixed lens). `distortion` is estimate_distortion:=true: for a varying focal length
-    core/lens_correction.SessionLensHook in front of the session exactly as nodes/calibrator.py wires it
+    lens/correction.SessionLensHook in front of the session exactly as nodes/calibrator.py wires it
     (homographies corrected per frame, keyframe matches through the hook, its `work` after every session
     step, D from its plumb_bob fit); for a fixed lens one coefficient in the session's adjustment;
     None: as the product is configured for the input (estimate_distortion for a distorted lens).
     "As published" counts the frames the product published as CONVERGED (DESIGN.md 4: the statuses
     before it say the calibration is not yet to be taken). `stills`: the stills front end's
     configuration for the real sets (track_sequence)."""
-    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput
-    from ptz_selfcal.core.lens_correction import SessionLensHook
+    from ptz_selfcal.lens.correction import SessionLensHook
+    from ptz_selfcal.online.session import CalibratorSession, FrameInput
 
     fixed = focal_model == "constant"
     distortion = seq.distorted if distortion is None else distortion
@@ -843,7 +843,7 @@ def synth_bag_sequence(name: str, spec: SynthSpec, n_frames: int, workdir: Path)
 def read_synth_bag(bag: Path) -> tuple[list[np.ndarray], Array, Array]:
     """(mono8 frames, true K (n, 3, 3), true world-to-camera R (n, 3, 3)) in image order."""
     from ptz_selfcal import topics
-    from ptz_selfcal.core.geometry import ptz_rotation
+    from ptz_selfcal.camera.geometry import ptz_rotation
     from ptz_selfcal.tools.bagio import BagReader, deserialize
 
     images: dict[int, np.ndarray] = {}

@@ -6,7 +6,7 @@ per-frame time flatness over a long run.
    (run: the three real node processes over DDS, lock-step), figures after the first 10% of frames:
    focal error median (target <= 0.15%) and p90 (<= 0.5%), principal point error median (<= 2 px),
    pairwise rotation-angle error median (<= 0.02 deg), coverage (100%), run throughput (>= 30 fps).
-2. Flatness (core only, no DDS): a 10,000-frame run of core/calibration_state.CalibratorSession on exact
+2. Flatness (core only, no DDS): a 10,000-frame run of online/session.CalibratorSession on exact
    synthetic geometry (the camera sweeps pan/tilt/zoom periodically, a keyframe every --keyframe-every
    frames with noisy keyframe matches, the worker's step run inline after each keyframe): mean time per
    frame over frames 9,000-10,000 vs 1,000-2,000 (target within 20%), for the frame path alone and with
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
-from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
 from ptz_selfcal.tools import evaluate
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""Issue 8: the stills front end (core/stills.py) on the real hand-held sets, configuration by configuration.
+"""Issue 8: the stills front end on the real hand-held sets, configuration by configuration.
 
     ros2_ws/venv/bin/python benchmarks/stills_frontend.py [--sets parrington,...] [--configs A,B] [--out FILE]
 
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import peers
 
-from ptz_selfcal.core.stills import StillsConfig, StillsTracker
+from ptz_selfcal.frontend.stills import StillsConfig, StillsTracker
 
 DEFAULT = StillsConfig()
 CONFIGS: dict[str, StillsConfig] = {

@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ptz_selfcal.core.render import ImageModel, build_panorama, view_maps
+from ptz_selfcal.sim.render import ImageModel, build_panorama, view_maps
 from ptz_selfcal.tools import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def stage_times(panorama: Path, width: int, height: int, repeats: int = 20) -> dict[str, float]:
     """Milliseconds per frame of each stage, single-threaded, on a mid-sequence view."""
-    from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+    from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 
     pano = build_panorama(cv2.imread(str(panorama)))
     K = intrinsic_matrix(1.5 * 0.5 * width / np.tan(np.radians(30.0)), 0.5 * width + 15, 0.5 * height - 10)

@@ -1,6 +1,6 @@
 """Benchmark of the homography tracker (issue 4; paper sections 2.2 and 4.2).
 
-1. PTZ sequences rendered (core.render.render_view) from the shared panoramas with exact ground truth
+1. PTZ sequences rendered (sim.render.render_view) from the shared panoramas with exact ground truth
    (1280x720, zoom 1x -> 3x, pan +-40 deg, small tilt, no distortion, Gaussian noise + JPEG): every
    estimated homography is compared with the true K_j R_j R_i^T K_i^-1 (eq. 8) by the transfer error
    over a 16x9 grid of the current image (points mapped back to the source by the true H), in
@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src" / "ptz_selfcal"))
 
-from ptz_selfcal.core.geometry import (  # noqa: E402
+from ptz_selfcal.camera.geometry import (  # noqa: E402
     apply_homography,
     infinite_homography,
     intrinsic_matrix,
@@ -38,8 +38,8 @@ from ptz_selfcal.core.geometry import (  # noqa: E402
     relative_rotation,
     transfer_error,
 )
-from ptz_selfcal.core.render import build_panorama, render_view  # noqa: E402
-from ptz_selfcal.core.tracker import HomographyTracker, TrackerConfig, TrackingState  # noqa: E402
+from ptz_selfcal.frontend.tracker import HomographyTracker, TrackerConfig, TrackingState  # noqa: E402
+from ptz_selfcal.sim.render import build_panorama, render_view  # noqa: E402
 
 DATA = Path("/work/shared/data")
 PANORAMAS = ("building.jpg", "examplepano.jpg", "dawn4000x2000.jpg", "field.jpg")
@@ -245,8 +245,8 @@ def run_rotation_set(folder: Path, config: TrackerConfig) -> dict:
     if used and used[-1] == len(images) - 1 and len(images) >= 3 and out["autostitch"]:
         out["loop_px"] = loop_closure_error(images[-1], images[0], H[-1], size, config)
     try:
-        from ptz_selfcal.core.intrinsics import IntrinsicsModel, ParamMode
-        from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+        from ptz_selfcal.camera.intrinsics import IntrinsicsModel, ParamMode
+        from ptz_selfcal.selfcal.lm import lm_selfcalibration
     except ImportError:
         return out
     for label, pp_mode in (("pp known", ParamMode.KNOWN), ("pp const", ParamMode.CONSTANT)):

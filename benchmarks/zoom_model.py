@@ -43,11 +43,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ptz_selfcal.core.distortion import max_distortion_difference
-from ptz_selfcal.core.encoders import EncoderConfig, EncoderInterpolator
-from ptz_selfcal.core.render import ZoomEncoder
-from ptz_selfcal.core.zoom_model import ZoomModel, ZoomRate
+from ptz_selfcal.camera.distortion import max_distortion_difference
+from ptz_selfcal.frontend.encoders import EncoderConfig, EncoderInterpolator
+from ptz_selfcal.sim.render import ZoomEncoder
 from ptz_selfcal.tools.bagio import BagReader, deserialize
+from ptz_selfcal.zoom.model import ZoomModel, ZoomRate
 
 ROOT = Path(__file__).resolve().parents[1]
 PANORAMA = ROOT / "bags" / "source" / "examplepano.jpg"

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from ptz_selfcal.core.distortion import max_distortion_difference
+from ptz_selfcal.camera.distortion import max_distortion_difference
 from ptz_selfcal.tools import evaluate
 from ptz_selfcal_msgs.msg import FrameCalibration
 

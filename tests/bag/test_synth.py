@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from ptz_selfcal import topics
-from ptz_selfcal.core.distortion import division_corner_shift, division_distort, division_undistort
-from ptz_selfcal.core.geometry import apply_homography, infinite_homography, ptz_rotation, relative_rotation
-from ptz_selfcal.core.render import CameraProfile, ZoomEncoder, focal_from_hfov
+from ptz_selfcal.camera.distortion import division_corner_shift, division_distort, division_undistort
+from ptz_selfcal.camera.geometry import apply_homography, infinite_homography, ptz_rotation, relative_rotation
+from ptz_selfcal.sim.render import CameraProfile, ZoomEncoder, focal_from_hfov
 from ptz_selfcal.tools import cli
 from ptz_selfcal.tools.bagio import BagReader, deserialize
 

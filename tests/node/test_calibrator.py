@@ -1,6 +1,6 @@
 """The calibrator node in a real process, fed real HomographyStamped messages over DDS.
 
-The homographies come from exact synthetic geometry (H_j = K_j R_j R_0^T K_0^-1, core/geometry), the
+The homographies come from exact synthetic geometry (H_j = K_j R_j R_0^T K_0^-1, camera/geometry), the
 keyframe matches from the same geometry with 0.2 px noise; the test talks to the node in lock-step
 (the next frame goes out when the previous frame's CameraInfo arrived).
 """
@@ -24,7 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import CameraInfo  # noqa: E402
 
 from ptz_selfcal import topics  # noqa: E402
-from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation  # noqa: E402
+from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation  # noqa: E402
 from ptz_selfcal.nodes.runtime import reliable_qos  # noqa: E402
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches  # noqa: E402
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from conftest import PANORAMAS, node_command
 
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 
 NODE_MODULES = {
     "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
@@ -45,7 +45,7 @@ STATUS_NAMES = {
 # rendered views
 @lru_cache(maxsize=2)
 def panorama(name: str = "building.jpg"):
-    from ptz_selfcal.core.render import build_panorama
+    from ptz_selfcal.sim.render import build_panorama
 
     path = PANORAMAS / name
     if not path.exists():
@@ -70,7 +70,7 @@ def true_K(view: View, width: int, height: int) -> np.ndarray:
 
 
 def render(view: View, width: int, height: int, pano: str = "building.jpg") -> np.ndarray:
-    from ptz_selfcal.core.render import render_view
+    from ptz_selfcal.sim.render import render_view
 
     return render_view(
         panorama(pano), true_K(view, width, height), ptz_rotation(view.pan, view.tilt), (width, height)
@@ -605,8 +605,8 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
     camera: keyframes (and their matches, and a worker step) are made during the first period; later
     periods revisit the same views, tracked against the existing keyframes, with a worker step every
     keyframe_every frames. Returns CPU ms per frame and RSS (MB) of this process per 1000-frame block."""
-    from ptz_selfcal.core.calibration_state import CalibratorSession, FrameInput, SessionConfig
-    from ptz_selfcal.core.geometry import apply_homography
+    from ptz_selfcal.camera.geometry import apply_homography
+    from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
 
     session = CalibratorSession(SessionConfig(nominal_hfov_deg=55.0))
     rng = np.random.default_rng(0)

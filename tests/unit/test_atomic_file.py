@@ -1,4 +1,4 @@
-"""core/atomic_file.py: temporary files of a write interrupted by a kill are recognisable and removed at
+"""persist/atomic_file.py: temporary files of a write interrupted by a kill are recognisable and removed at
 the next start (the calibrator's state load), those of a live writer and unrelated files are kept."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import textwrap
 import time
 from pathlib import Path
 
-from ptz_selfcal.core import calibration_state as cs
-from ptz_selfcal.core.atomic_file import TEMP_SUFFIX, atomic_write_text, remove_stale_temporaries
+from ptz_selfcal.online import session as cs
+from ptz_selfcal.persist.atomic_file import TEMP_SUFFIX, atomic_write_text, remove_stale_temporaries
 
 SRC = str(Path(cs.__file__).resolve().parents[2])
 
@@ -30,7 +30,7 @@ def kill_during_save(state_dir: Path) -> Path:
         f"""
         import os, sys, time
         sys.path.insert(0, {SRC!r})
-        from ptz_selfcal.core import atomic_file
+        from ptz_selfcal.persist import atomic_file
         def hang(src, dst):
             print("written", flush=True)
             time.sleep(60)
@@ -87,7 +87,7 @@ def test_write_leaves_no_temporary_and_names_them_recognisably(tmp_path: Path, m
         seen.append(Path(src).name)
         real_replace(src, dst)
 
-    monkeypatch.setattr("ptz_selfcal.core.atomic_file.os.replace", spy)
+    monkeypatch.setattr("ptz_selfcal.persist.atomic_file.os.replace", spy)
     atomic_write_text(path, "a: 2\n")
     assert seen[0].startswith(f".state.yaml.{os.getpid()}.") and seen[0].endswith(TEMP_SUFFIX)
     assert path.read_text() == "a: 2\n" and os.listdir(tmp_path) == ["state.yaml"]

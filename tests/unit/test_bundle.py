@@ -5,22 +5,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ptz_selfcal.core import bundle
-from ptz_selfcal.core.bundle import (
+from ptz_selfcal.bundle import adjust as bundle
+from ptz_selfcal.bundle.adjust import (
     BundleObservations,
     bundle_adjust,
     default_pp_prior,
     pair_observations,
 )
-from ptz_selfcal.core.geometry import rot_x, rot_y, rot_z, rotation_angle
-from ptz_selfcal.core.intrinsics import (
+from ptz_selfcal.camera.geometry import rot_x, rot_y, rot_z, rotation_angle
+from ptz_selfcal.camera.intrinsics import (
     SQUARE_CONSTANT_PP,
     SQUARE_VARYING_PP,
     IntrinsicsModel,
     ParamMode,
     SelfCalibrationError,
 )
-from ptz_selfcal.core.synthetic import paper_sequence
+from ptz_selfcal.sim.synthetic import paper_sequence
 
 
 def _perturbed_start(seq, seed: int, focal_scale: float = 1.04, pp_shift=(6.0, -4.0), angle=3e-3):
@@ -125,8 +125,8 @@ def test_analytic_jacobians_match_finite_differences() -> None:
 def test_mle_beats_its_lm_start_within_statistical_bounds() -> None:
     """Over fixed seeds the MLE reduces the focal error of LM (constant pp), and its errors match its
     own 1-sigma (the reduced normal equations' inverse scaled by the residual variance)."""
-    from ptz_selfcal.core.linear_selfcal import linear_selfcalibration
-    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+    from ptz_selfcal.selfcal.linear import linear_selfcalibration
+    from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
     sigma = 0.5
     lm_errors, mle_errors, z_f, z_pp = [], [], [], []
@@ -348,9 +348,9 @@ def test_focal_lower_bound_and_errors() -> None:
 
 
 def _keyframes_with_matches(seq, frames):
-    """Keyframe records (core.incremental.Keyframe) for `frames` (frames[0] is the reference) with
+    """Keyframe records (online.incremental.Keyframe) for `frames` (frames[0] is the reference) with
     matches to the previous keyframe and to the reference."""
-    from ptz_selfcal.core.incremental import Keyframe
+    from ptz_selfcal.online.incremental import Keyframe
 
     records = []
     for k, j in enumerate(frames[1:], start=1):
@@ -398,7 +398,7 @@ def test_keyframe_solver_refines_lm_with_bundle_adjustment() -> None:
 def _distorted_pair_matches(K, R, lam, pp, f, size, rng, noise: float) -> list:
     """Matches (i, j, x_i, x_j) of keyframe pairs (i, i+1), (i, i+2) on DISTORTED pixels (division model
     lam[i] about pp[i], radius / f[i]), at most 60 per pair, with Gaussian noise on both sides."""
-    from ptz_selfcal.core.distortion import division_distort, division_undistort
+    from ptz_selfcal.camera.distortion import division_distort, division_undistort
 
     n, (width, height) = len(K), size
     pairs = []
@@ -423,9 +423,9 @@ def _distorted_pair_matches(K, R, lam, pp, f, size, rng, noise: float) -> list:
 
 
 def _distorted_keyframe_pairs(corner_shift: float, pp_offset=(15.0, -10.0), noise=0.0, n=16, seed=0):
-    """Keyframe-pair matches of a 1280x720 PTZ camera zooming 1x -> 3x (core/render.CameraProfile, lam
+    """Keyframe-pair matches of a 1280x720 PTZ camera zooming 1x -> 3x (sim/render.CameraProfile, lam
     shrinking as 1/f) on DISTORTED pixels, each ray seen in two keyframes (i, i+1) or (i, i+2)."""
-    from ptz_selfcal.core.render import CameraProfile
+    from ptz_selfcal.sim.render import CameraProfile
 
     width, height = 1280, 720
     f_wide = 0.5 * width / np.tan(np.radians(30.0))
@@ -547,10 +547,10 @@ def _fixed_lens_pan_pairs(corner_shift: float, tilt_deg: float = 0.0, noise=0.0,
     """Keyframe-pair matches (i, i+1), (i, i+2) of a fixed 640x480 lens (f 600 px, pp 12/-8 px off
     centre, division distortion with the given corner shift) panning 6 deg per keyframe about the
     vertical (pan only unless tilt_deg), on DISTORTED pixels."""
-    from ptz_selfcal.core.distortion import (
+    from ptz_selfcal.camera.distortion import (
         division_lambda_for_corner_shift,
     )
-    from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+    from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 
     width, height, f = 640, 480, 600.0
     pp = np.array([319.5 + 12.0, 239.5 - 8.0])
@@ -619,9 +619,9 @@ def test_shared_distortion_with_noise_within_its_own_uncertainty() -> None:
 def test_lm_on_a_pan_calibrates_a_fixed_lens_and_flags_a_zooming_model() -> None:
     """Section 6.1 in LM on eq. 22 too: exact homographies of a pure pan (one axis) are enough for
     constant K with square pixels and zero skew, not for a per-frame focal length."""
-    from ptz_selfcal.core.degeneracy import single_axis_is_degenerate
-    from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
-    from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+    from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
+    from ptz_selfcal.selfcal.degeneracy import single_axis_is_degenerate
+    from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
     size = (640, 480)
     K = intrinsic_matrix(600.0, 319.5 + 12.0, 239.5 - 8.0)

@@ -1,4 +1,4 @@
-"""core/calibration_state: the calibrator's per-frame logic, statuses, zoom model use and persistence."""
+"""online/session: the calibrator's per-frame logic, statuses, zoom model use and persistence."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ptz_selfcal.core import calibration_state as cs
-from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, ptz_rotation, rotation_angle
-from ptz_selfcal.core.incremental import image_motion
+from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation, rotation_angle
+from ptz_selfcal.online import session as cs
+from ptz_selfcal.online.incremental import image_motion
 
 WIDTH, HEIGHT = 1280, 720
 PP = (639.5 + 15.0, 359.5 - 10.0)
@@ -313,7 +313,7 @@ def test_focal_model_is_validated() -> None:
 def feed_distorted(session: cs.CalibratorSession, K: np.ndarray, H, lam: float, every: int = 6) -> list:
     """feed() with the keyframe matches on DISTORTED pixels (division model about the principal point,
     one coefficient: a fixed lens); the frames' homographies are the undistorted truth."""
-    from ptz_selfcal.core.distortion import division_distort, division_undistort
+    from ptz_selfcal.camera.distortion import division_distort, division_undistort
 
     rng = np.random.default_rng(2)
     f, pp = K[0][1, 1], K[0][:2, 2]
@@ -343,7 +343,7 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     CALIBRATING: without a loop closure f moves by more than 2% when the radial term is dropped (the
     documented, conservative side of converged_max_lens_model_change); with the check off it is
     CONVERGED."""
-    from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
+    from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
 
     K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
@@ -371,7 +371,7 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
 def test_fixed_lens_solves_start_from_the_previous_adjustment() -> None:
     """After the first adjustment a fixed lens's solves start from the previous one (K, and the
     rotation of every keyframe it held) instead of LM on eq. 22, and end where a solve from LM ends."""
-    from ptz_selfcal.core.distortion import division_lambda_for_corner_shift
+    from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift
 
     K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
@@ -398,7 +398,7 @@ def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
     """The same distorted lens calibrated WITHOUT the radial term: f is biased, its sigma_f says
     nothing about it, and the lens-model check keeps it from CONVERGED (with the check off it would
     be published as CONVERGED)."""
-    from ptz_selfcal.core.distortion import division_lambda_for_corner_shift
+    from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift
 
     K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.geometry import work_from_full
+from ptz_selfcal.camera.geometry import work_from_full
 from ptz_selfcal.nodes.conversions import (
     FrameError,
     ImageLimits,

@@ -5,21 +5,21 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from ptz_selfcal.core.degeneracy import (
+from ptz_selfcal.camera.geometry import (
+    intrinsic_matrix,
+    ptz_rotation,
+    relative_rotation,
+)
+from ptz_selfcal.camera.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.selfcal.degeneracy import (
     STATUS_INSUFFICIENT_ROTATION,
     STATUS_NEAR_AMBIGUOUS,
     STATUS_OK,
     STATUS_SINGLE_AXIS,
     analyse_motion,
 )
-from ptz_selfcal.core.geometry import (
-    intrinsic_matrix,
-    ptz_rotation,
-    relative_rotation,
-)
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)
@@ -43,8 +43,8 @@ def circle(n: int, radius_deg: float, tilt0_deg: float = 0.0) -> np.ndarray:
 def test_single_axis_is_a_status_only_for_models_it_leaves_undetermined() -> None:
     """Section 6.1 (Hayman 2000): pure pan leaves a zooming camera undetermined but not a fixed lens
     with square pixels and zero skew; the report still describes the motion as single-axis."""
-    from ptz_selfcal.core.degeneracy import single_axis_is_degenerate
-    from ptz_selfcal.core.intrinsics import IntrinsicsModel, ParamMode
+    from ptz_selfcal.camera.intrinsics import IntrinsicsModel, ParamMode
+    from ptz_selfcal.selfcal.degeneracy import single_axis_is_degenerate
 
     fixed = IntrinsicsModel(focal=ParamMode.CONSTANT)
     assert not single_axis_is_degenerate(fixed)

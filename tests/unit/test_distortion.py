@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.distortion import (
+from ptz_selfcal.camera.distortion import (
     division_corner_shift,
     division_distort,
     division_lambda_for_corner_shift,
@@ -19,14 +19,14 @@ from ptz_selfcal.core.distortion import (
     plumb_bob_undistort,
     radial_displacement,
 )
-from ptz_selfcal.core.distortion_estimation import (
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.lens.estimation import (
     DistortionVsFocal,
     KeyframeMatch,
     estimate_keyframe_distortion,
     estimate_pair_distortion,
     rescale_lambda,
 )
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
 
 W, H = 1280, 720
 CENTRE = np.array([639.5, 359.5])
@@ -273,7 +273,7 @@ def test_distortion_vs_focal_reduces_degree_on_a_narrow_range():
 
 
 def test_analytic_jacobian_matches_finite_differences():
-    from ptz_selfcal.core import distortion_estimation as de
+    from ptz_selfcal.lens import estimation as de
 
     rng = np.random.default_rng(6)
     a, b = rng.uniform(-0.5, 0.5, (40, 2)), rng.uniform(-0.4, 0.4, (40, 2))
@@ -293,12 +293,12 @@ def test_analytic_jacobian_matches_finite_differences():
 
 
 def test_homographies_on_corrected_coordinates():
-    from ptz_selfcal.core.distortion_estimation import (
+    from ptz_selfcal.camera.geometry import transfer_error
+    from ptz_selfcal.frontend.homography import estimate_homography
+    from ptz_selfcal.lens.estimation import (
         undistorted_homography,
         undistorted_homography_from_points,
     )
-    from ptz_selfcal.core.geometry import transfer_error
-    from ptz_selfcal.core.homography import estimate_homography
 
     f_i, f_j = F_WIDE, 1.1 * F_WIDE
     d_i, d_j = synthetic_pair(f_i, f_j, (0.0, 0.0), (0.15, 0.05), n=400)
@@ -317,7 +317,7 @@ def test_homographies_on_corrected_coordinates():
 
 
 def test_incremental_estimator_for_the_calibrator():
-    from ptz_selfcal.core.distortion_estimation import KeyframeDistortionEstimator
+    from ptz_selfcal.lens.estimation import KeyframeDistortionEstimator
 
     # 0.15 px: the KLT matches of the image benchmark have 0.06-0.13 px transfer rms after correction
     f, matches = zoom_sequence(n_kf=8, noise=0.15, seed=2)
@@ -356,7 +356,7 @@ def test_invalid_matches_are_rejected():
 
 
 def test_frame_distortion_with_known_keyframe_and_prior():
-    from ptz_selfcal.core.distortion_estimation import estimate_frame_distortion
+    from ptz_selfcal.lens.estimation import estimate_frame_distortion
 
     f_kf, f_fr = 1.2 * F_WIDE, 1.3 * F_WIDE
     d_kf, d_fr = synthetic_pair(f_kf, f_fr, (0.0, 0.0), (0.2, 0.04), n=250)

@@ -1,10 +1,10 @@
-"""core/encoders.py: interpolation to image stamps, bad samples, bounded memory."""
+"""frontend/encoders.py: interpolation to image stamps, bad samples, bounded memory."""
 
 import math
 
 import pytest
 
-from ptz_selfcal.core.encoders import EncoderConfig, EncoderInterpolator, QueryStatus, Rejection
+from ptz_selfcal.frontend.encoders import EncoderConfig, EncoderInterpolator, QueryStatus, Rejection
 
 
 def feed(

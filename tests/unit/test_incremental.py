@@ -8,14 +8,15 @@ import time
 import numpy as np
 import yaml
 
-from ptz_selfcal.core.geometry import (
+from ptz_selfcal.camera.geometry import (
     infinite_homography,
     intrinsic_matrix,
     ptz_rotation,
     relative_rotation,
     rotation_angle,
 )
-from ptz_selfcal.core.incremental import (
+from ptz_selfcal.camera.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
+from ptz_selfcal.online.incremental import (
     CalibrationState,
     IncrementalCalibrator,
     Keyframe,
@@ -24,8 +25,7 @@ from ptz_selfcal.core.incremental import (
     intrinsics_from_transferred_diac,
     lm_solver,
 )
-from ptz_selfcal.core.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)
@@ -155,7 +155,7 @@ def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
 def test_near_ambiguous_solution_is_kept_but_reported() -> None:
     """Config B, varying pp, sigma = 2 px (section 6.2): the estimate is kept as the best available,
     with state DEGENERATE_MOTION and a large sigma_f, never as CONVERGED."""
-    from ptz_selfcal.core.homography import estimate_homography
+    from ptz_selfcal.frontend.homography import estimate_homography
 
     K, R, _ = sequence(30, radius_deg=3.5, f0=1200.0, f1=2000.0)
     rng = np.random.default_rng(0)

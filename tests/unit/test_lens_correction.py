@@ -1,4 +1,4 @@
-"""core/lens_correction: the calibrator's online distortion state on exact synthetic correspondences.
+"""lens/correction: the calibrator's online distortion state on exact synthetic correspondences.
 
 Keyframes of a camera that pans, tilts and zooms (known K_i, R_i) see the same random rays through the
 issue's lens (division model, 12% corner shift at the wide end shrinking as 1/f). The module must
@@ -11,20 +11,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.distortion import (
+from ptz_selfcal.camera.distortion import (
     division_distort,
     division_lambda_for_corner_shift,
     max_distortion_difference,
 )
-from ptz_selfcal.core.geometry import (
+from ptz_selfcal.camera.geometry import (
     apply_homography,
     intrinsic_matrix,
     normalise_homography,
     pixel_grid,
     ptz_rotation,
 )
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.lens_correction import LensCorrection, SessionLensHook
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.lens.correction import LensCorrection, SessionLensHook
 
 W, H = 1280, 720
 H_IMG = H
@@ -211,7 +211,7 @@ class _StubCalibrator:
 
 
 class _StubSession:
-    """What SessionLensHook uses of core/calibration_state.CalibratorSession."""
+    """What SessionLensHook uses of online/session.CalibratorSession."""
 
     def __init__(self) -> None:
         self.calibrator = _StubCalibrator()
@@ -283,7 +283,7 @@ class _StubSolver:
 
 
 def test_joint_hook_sends_raw_matches_and_takes_the_adjusted_centre_once_it_is_certain() -> None:
-    from ptz_selfcal.core.calibration_state import LensEstimate
+    from ptz_selfcal.online.keyframe_solver import LensEstimate
 
     hook = SessionLensHook(lambda width: F_WIDE, centre_gate_px=2.0)
     session = _StubSession()

@@ -5,17 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.geometry import (
+from ptz_selfcal.camera.geometry import (
     intrinsic_matrix,
     ptz_rotation,
     reference_homographies,
     relative_rotation,
     rotation_angle,
 )
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.intrinsics import SelfCalibrationError
-from ptz_selfcal.core.linear_selfcal import intrinsics_from_iac, linear_selfcalibration
-from ptz_selfcal.core.synthetic import circle_rotations
+from ptz_selfcal.camera.intrinsics import SelfCalibrationError
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.selfcal.linear import intrinsics_from_iac, linear_selfcalibration
+from ptz_selfcal.sim.synthetic import circle_rotations
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)

@@ -7,15 +7,14 @@ import time
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.geometry import (
+from ptz_selfcal.camera.geometry import (
     intrinsic_matrix,
     quaternion_from_matrix,
     reference_homographies,
     relative_rotation,
     rotation_angle,
 )
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.intrinsics import (
+from ptz_selfcal.camera.intrinsics import (
     SQUARE_CONSTANT_PP,
     SQUARE_KNOWN_PP,
     SQUARE_VARYING_PP,
@@ -26,8 +25,9 @@ from ptz_selfcal.core.intrinsics import (
     parameter_count,
     parameters_from_intrinsics,
 )
-from ptz_selfcal.core.lm_selfcal import _Eq22Problem, lm_selfcalibration
-from ptz_selfcal.core.synthetic import circle_rotations
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.selfcal.lm import _Eq22Problem, lm_selfcalibration
+from ptz_selfcal.sim.synthetic import circle_rotations
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)

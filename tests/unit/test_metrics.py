@@ -1,13 +1,13 @@
-"""core.metrics: the DESIGN.md section 7 metrics on hand-checked and synthetic cases."""
+"""sim.metrics: the DESIGN.md section 7 metrics on hand-checked and synthetic cases."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ptz_selfcal.core import metrics
-from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation, rot_z
+from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation, rot_z
+from ptz_selfcal.sim import metrics
 
 
 def test_focal_and_principal_point_errors() -> None:

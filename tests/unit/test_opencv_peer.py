@@ -12,7 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 import opencv_peer
 
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation, rot_z
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation, rot_z
 
 cv2 = pytest.importorskip("cv2")
 

@@ -1,4 +1,4 @@
-"""core/render.py: the rendered views obey the ground-truth projection exactly, profiles and encoders."""
+"""sim/render.py: the rendered views obey the ground-truth projection exactly, profiles and encoders."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.distortion import division_corner_shift, division_distort, division_undistort
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
-from ptz_selfcal.core.render import (
+from ptz_selfcal.camera.distortion import division_corner_shift, division_distort, division_undistort
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.sim.render import (
     CameraProfile,
     EncoderModel,
     ImageModel,

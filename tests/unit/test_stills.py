@@ -1,4 +1,4 @@
-"""StillsTracker (core/stills.py) on stills rendered from a real panorama with exact ground truth (issue 8):
+"""StillsTracker on stills rendered from a real panorama with exact ground truth (issue 8):
 a hand-held 360 degree pan in order, as the real rotation sets are."""
 
 from __future__ import annotations
@@ -10,14 +10,14 @@ import cv2
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.geometry import (
+from ptz_selfcal.camera.geometry import (
     intrinsic_matrix,
     ptz_rotation,
     rotation_angle,
     rotation_from_homography,
     transfer_error,
 )
-from ptz_selfcal.core.stills import (
+from ptz_selfcal.frontend.stills import (
     StillsConfig,
     StillsTracker,
     _Edge,
@@ -28,7 +28,7 @@ from ptz_selfcal.core.stills import (
     path_rotations,
     points_inside,
 )
-from ptz_selfcal.core.tracker import TrackingState
+from ptz_selfcal.frontend.tracker import TrackingState
 
 PANORAMA = Path("/work/shared/data/panoramas/examplepano.jpg")
 SIZE = (320, 240)
@@ -51,7 +51,7 @@ def hand_held(n: int = N_STILLS, seed: int = 3) -> np.ndarray:
 def stills() -> tuple[list[np.ndarray], np.ndarray]:
     if not PANORAMA.exists():
         pytest.skip("shared panorama data absent")
-    from ptz_selfcal.core.render import build_panorama, render_view
+    from ptz_selfcal.sim.render import build_panorama, render_view
 
     pano = build_panorama(cv2.imread(str(PANORAMA), cv2.IMREAD_GRAYSCALE))
     R = hand_held()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.geometry import normalise_homography, rotation_angle, transfer_error
-from ptz_selfcal.core.synthetic import CONFIGURATIONS, paper_sequence, project
+from ptz_selfcal.camera.geometry import normalise_homography, rotation_angle, transfer_error
+from ptz_selfcal.sim.synthetic import CONFIGURATIONS, paper_sequence, project
 
 
 @pytest.mark.parametrize("config", ["A", "B"])

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ptz_selfcal.core.features import robust_homography, usac_params
-from ptz_selfcal.core.geometry import apply_homography, homography_work_to_full, transfer_error
-from ptz_selfcal.core.tracker import (
+from ptz_selfcal.camera.geometry import apply_homography, homography_work_to_full, transfer_error
+from ptz_selfcal.frontend.features import robust_homography, usac_params
+from ptz_selfcal.frontend.tracker import (
     HomographyTracker,
     TrackerConfig,
     TrackingState,
@@ -257,8 +257,8 @@ def test_fast_zooming_preset_recall_on_a_repetitive_facade_gives_no_wrong_homogr
     prediction locks onto the wrong period of the texture with a consistent, high-inlier fit. Every
     homography must stay right (chained drift of a few pixels at most), every keyframe link within the
     link tolerance, and the view returned to closes the loop onto the old keyframes (sub-pixel)."""
-    from ptz_selfcal.core.geometry import intrinsic_matrix, pixel_grid, ptz_rotation
-    from ptz_selfcal.core.render import build_panorama, render_view
+    from ptz_selfcal.camera.geometry import intrinsic_matrix, pixel_grid, ptz_rotation
+    from ptz_selfcal.sim.render import build_panorama, render_view
 
     if not PANORAMA.exists():
         pytest.skip("shared panorama data absent")

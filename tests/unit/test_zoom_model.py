@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import yaml
 
-from ptz_selfcal.core import zoom_model as zm
-from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
-from ptz_selfcal.core.geometry import intrinsic_matrix
-from ptz_selfcal.core.zoom_model import ZoomModel, ZoomModelError
+from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
+from ptz_selfcal.camera.geometry import intrinsic_matrix
+from ptz_selfcal.zoom import model as zm
+from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
 
 W, H = 1280, 720
 SRC = str(Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal")
@@ -156,7 +156,7 @@ def test_process_killed_while_writing_leaves_old_file_loadable(tmp_path):
         f"""
         import os, sys, time
         sys.path.insert(0, {SRC!r})
-        from ptz_selfcal.core import zoom_model as zm
+        from ptz_selfcal.zoom import model as zm
         model = zm.ZoomModel()
         for z in range(0, 1000, 3):
             model.add_sample(float(z), 2000.0 + z, 600.0, 300.0, -0.1, 0.01)
@@ -416,7 +416,7 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
     from test_calibration_state import WIDTH as CS_W
     from test_calibration_state import feed, sweep
 
-    from ptz_selfcal.core import calibration_state as cs
+    from ptz_selfcal.online import session as cs
 
     K, H, f = sweep(120)
     first = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)

@@ -13,7 +13,7 @@ Input (a live camera, or a bag from `ptz-selfcal synth`):
 Ground truth (synthetic bags only; the pipeline never subscribes to it):
 - GT_CAMERA_INFO: one CameraInfo per image, the image's header: true K, P = [K|0], R = I, full-resolution
   width/height. distortion_model GT_DIVISION_MODEL with D = [lambda] when the lens is distorted: the
-  division model of core/distortion.py, lambda on the normalised radius r = |x - c| / fx with the centre c
+  division model of camera/distortion.py, lambda on the normalised radius r = |x - c| / fx with the centre c
   at the principal point; otherwise "plumb_bob" with D = [0, 0, 0, 0, 0].
 - GT_JOINT_STATES: one JointState per image, the image's stamp: the exact (noise- and lag-free) pan and
   tilt in radians and zoom encoder value.

@@ -1,1 +1,1 @@
-"""Thin rclpy nodes: parameters, topics and conversions over ptz_selfcal.core."""
+"""Thin rclpy nodes: parameters, topics and conversions over the pure packages."""

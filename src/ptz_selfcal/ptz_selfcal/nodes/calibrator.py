@@ -1,6 +1,6 @@
 """calibrator node: HomographyStamped (one per frame) + KeyframeMatches in, one CameraInfo per frame out.
 
-A thin wrapper of core/calibration_state.CalibratorSession (which drives core/incremental's
+A thin wrapper of online/session.CalibratorSession (which drives online/incremental's
 IncrementalCalibrator with LM + the keyframe bundle adjustment with the MAP principal-point prior).
 For every HomographyStamped it publishes EXACTLY ONE sensor_msgs/CameraInfo on topics.CAMERA_INFO
 (header copied, full-resolution size, K, P = [K|0], R = I, plumb_bob D = [k1, k2, 0, 0, 0]) and one
@@ -33,14 +33,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
 
 from ptz_selfcal import topics
-from ptz_selfcal.core.calibration_state import (
-    CalibratorSession,
-    FrameInput,
-    FrameOutput,
-    SessionConfig,
-)
-from ptz_selfcal.core.geometry import quaternion_from_matrix
-from ptz_selfcal.core.lens_correction import SessionLensHook
+from ptz_selfcal.camera.geometry import quaternion_from_matrix
+from ptz_selfcal.lens.correction import SessionLensHook
 from ptz_selfcal.nodes.conversions import (
     ConfigError,
     Param,
@@ -52,6 +46,12 @@ from ptz_selfcal.nodes.conversions import (
     stamp_to_sec,
 )
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.online.session import (
+    CalibratorSession,
+    FrameInput,
+    FrameOutput,
+    SessionConfig,
+)
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches
 
 PARAMS = [
@@ -144,7 +144,7 @@ PARAMS = [
     Param(
         "estimate_distortion",
         False,
-        "radial distortion (issue 6). focal_model varying: through core/lens_correction.SessionLensHook, "
+        "radial distortion (issue 6). focal_model varying: through lens/correction.SessionLensHook, "
         "division model about the principal point estimated in the keyframe bundle adjustment on the raw "
         "keyframe matches (lam(f) curve), homographies corrected with it before self-calibration. "
         "focal_model constant: ONE division coefficient for the lens, estimated with K in that "

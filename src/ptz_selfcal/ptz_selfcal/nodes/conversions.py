@@ -6,7 +6,7 @@ Every way an input can be unusable raises FrameError with a short `kind` (the di
 and a one-line explanation; nothing here logs or crashes.
 
 Working resolution: an integer downscale factor k, scale s = 1/k, so that both axes scale exactly and the
-pixel-centre convention x_work = (x_full + 0.5) * s - 0.5 of core/geometry.py holds (INTER_AREA averaging
+pixel-centre convention x_work = (x_full + 0.5) * s - 0.5 of camera/geometry.py holds (INTER_AREA averaging
 of k x k blocks; a full image whose size is not a multiple of k loses its last < k columns/rows, which
 does not move any coordinate). JPEG is decoded directly at 1/2, 1/4 or 1/8 size where possible (libjpeg
 DCT scaling averages the same blocks).

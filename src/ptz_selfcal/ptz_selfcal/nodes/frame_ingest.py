@@ -2,7 +2,7 @@
 
 Subscribes topics.IMAGE_RAW and/or topics.IMAGE_COMPRESSED (parameter `input`) and topics.JOINT_STATES;
 publishes one IngestedFrame per usable image on topics.FRAME_IN with the encoders interpolated to the
-image stamp (core/encoders.py), the full-resolution size and the working scale; DiagnosticArray on
+image stamp (frontend/encoders.py), the full-resolution size and the working scale; DiagnosticArray on
 topics.DIAGNOSTICS. Unusable images (unsupported or lying encoding, step/size mismatch, zero or huge
 size, undecodable compressed data, truncated messages, duplicate stamps) are counted per kind, logged once
 per kind and skipped; black or flat frames pass (the tracker decides). Images are taken serialized
@@ -30,7 +30,7 @@ from sensor_msgs.msg import CompressedImage, Image, JointState
 from std_msgs.msg import Header
 
 from ptz_selfcal import topics
-from ptz_selfcal.core.encoders import EncoderConfig, EncoderInterpolator, QueryStatus
+from ptz_selfcal.frontend.encoders import EncoderConfig, EncoderInterpolator, QueryStatus
 from ptz_selfcal.nodes.conversions import (
     ConfigError,
     FrameError,

@@ -1,14 +1,14 @@
 """homography_tracker node: IngestedFrame in, HomographyStamped (one per frame) and KeyframeMatches out.
 
-A thin wrapper of core/tracker.HomographyTracker. Every IngestedFrame gives exactly one HomographyStamped
+A thin wrapper of frontend/tracker.HomographyTracker. Every IngestedFrame gives exactly one HomographyStamped
 on topics.HOMOGRAPHY (header, full-resolution size and encoders passed through, `seq` copied), also when
 tracking is lost or the frame is unusable: then the state is TRACKING_LOST or TEXTURELESS, h is the
 identity and inlier_count 0. New keyframes (and relocalisations) publish their keyframe links as
 KeyframeMatches on topics.KEYFRAMES. reference_frame_id/reference_stamp name the reference keyframe's
 image (the map's origin: it changes when the tracker starts a new map). Tracker settings are the
-parameters `tracker.<field>` of core/tracker.TrackerConfig.
+parameters `tracker.<field>` of frontend/tracker.TrackerConfig.
 
-State: with `state_dir` set, the keyframe map (core/tracker export_map, with the keyframes' header stamps)
+State: with `state_dir` set, the keyframe map (frontend/tracker export_map, with the keyframes' header stamps)
 is saved atomically to state_dir/tracker_map.npz by a background thread whenever it changed (a new
 keyframe or relocalisation), at most once per `save_period`, and on shutdown. At start the saved map is
 loaded: the tracker begins lost and relocalises its first frames against the stored keyframes, so after a
@@ -38,8 +38,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 
 from ptz_selfcal import topics
-from ptz_selfcal.core.atomic_file import atomic_write_bytes, remove_stale_temporaries
-from ptz_selfcal.core.tracker import (
+from ptz_selfcal.frontend.tracker import (
     TRACKER_CHOICES,
     HomographyTracker,
     TrackerConfig,
@@ -60,6 +59,7 @@ from ptz_selfcal.nodes.conversions import (
     stamp_to_sec,
 )
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.persist.atomic_file import atomic_write_bytes, remove_stale_temporaries
 from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
 
 PARAMS = [
@@ -141,7 +141,7 @@ def tracker_params() -> list[Param]:
         default = getattr(defaults, f.name)
         if isinstance(default, tuple):
             default = list(default)
-        description = comments.get(f.name, f"TrackerConfig.{f.name} (core/tracker.py)")
+        description = comments.get(f.name, f"TrackerConfig.{f.name} (frontend/tracker.py)")
         params.append(Param(f"tracker.{f.name}", default, description, _tracker_check(f.name, default)))
     return params
 

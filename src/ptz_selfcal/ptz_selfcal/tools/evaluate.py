@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from ptz_selfcal import topics
-from ptz_selfcal.core import metrics
-from ptz_selfcal.core.distortion import DIVISION, PLUMB_BOB
-from ptz_selfcal.core.geometry import matrix_from_quaternion
+from ptz_selfcal.camera.distortion import DIVISION, PLUMB_BOB
+from ptz_selfcal.camera.geometry import matrix_from_quaternion
+from ptz_selfcal.sim import metrics
 from ptz_selfcal.tools.bagio import BagReader, deserialize, header_stamp_ns
 from ptz_selfcal.tools.cli import CliError
 from ptz_selfcal.tools.report import STATUS_NAMES, format_table, write_json, write_plots

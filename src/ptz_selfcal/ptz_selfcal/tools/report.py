@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ptz_selfcal.core.atomic_file import atomic_write_text
+from ptz_selfcal.persist.atomic_file import atomic_write_text
 
 STATUS_NAMES = (
     "INITIALISING",
@@ -44,7 +44,7 @@ def _clean(value: Any) -> Any:
 
 
 def write_json(report: dict, path: str | os.PathLike[str]) -> Path:
-    """Write the report atomically (core.atomic_file: temp file, fsync, rename)."""
+    """Write the report atomically (persist.atomic_file: temp file, fsync, rename)."""
     path = Path(path)
     atomic_write_text(path, json.dumps(_clean(report), indent=2, sort_keys=False) + "\n")
     return path

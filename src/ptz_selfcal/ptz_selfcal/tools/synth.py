@@ -5,11 +5,11 @@ Writes a ROS 2 bag (mcap by default) with the topics of DESIGN.md section 3 and 
   NS/ptz/image_raw/compressed    sensor_msgs/CompressedImage (--format jpeg|png), or
   NS/ptz/image_raw               sensor_msgs/Image (--format mono8|bgr8)
   NS/ptz/joint_states            sensor_msgs/JointState: encoders pan, tilt (rad), zoom (counts), own rate,
-                                 lag and noise (core/render.py EncoderModel: stamp t = state at t - lag,
+                                 lag and noise (sim/render.py EncoderModel: stamp t = state at t - lag,
                                  so an ingest's time_offset is -lag)
   NS/ptz/ground_truth/camera_info  sensor_msgs/CameraInfo per image, same stamp: the true K, P = [K|0],
                                  R = I; distortion_model "plumb_bob" with D = 0 when the lens has no
-                                 distortion, else "division" with D = [lam] (exact: core/distortion.py)
+                                 distortion, else "division" with D = [lam] (exact: camera/distortion.py)
   NS/ptz/ground_truth/joint_states sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
 and OUT_BAG/synth_params.yaml (every parameter, for evaluation and reproduction). The bag is written to
 a temporary directory beside OUT_BAG and renamed at the end: nothing is left half-written. The same
@@ -36,8 +36,8 @@ import cv2
 import numpy as np
 
 from ptz_selfcal import topics
-from ptz_selfcal.core.distortion import PLUMB_BOB
-from ptz_selfcal.core.render import (
+from ptz_selfcal.camera.distortion import PLUMB_BOB
+from ptz_selfcal.sim.render import (
     CameraProfile,
     CameraState,
     EncoderModel,
@@ -389,7 +389,7 @@ class Topics:
 
 
 def encoder_messages(types: Any, setup: Setup, seed: int) -> deque[tuple[int, Any]]:
-    """(stamp ns, JointState) of every encoder sample, in time order (core/render.py EncoderModel)."""
+    """(stamp ns, JointState) of every encoder sample, in time order (sim/render.py EncoderModel)."""
     times = setup.encoders.sample_times(float(setup.frame_times[0]), float(setup.frame_times[-1]))
     pan, tilt, zoom = setup.encoders.readings(
         setup.profile, setup.zoom, times, np.random.default_rng([seed, 1])
@@ -469,7 +469,7 @@ def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) ->
             "pan_cycles": p.pan_cycles, "tilt_cycles": p.tilt_cycles, "waveform": p.waveform,
             "pp_offset_px": list(p.pp_offset), "pp_drift_px": list(p.pp_drift),
             "distortion_corner_shift_at_wide": p.corner_shift,
-            "distortion_model": "division, lam on radius / fx about the principal point (core/distortion.py)",
+            "distortion_model": "division, lam on radius / fx about the principal point",
         },
         "zoom_encoder": {
             "law": "counts = 16384 * (ln(f / f_wide) / ln(lens_ratio)) ** exponent",

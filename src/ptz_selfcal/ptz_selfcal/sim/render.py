@@ -4,7 +4,7 @@ Everything `ptz-selfcal synth` needs that is not ROS: panorama sampling, the cam
 zoom profile, the lens (principal point, radial distortion against focal length), the encoder model and
 the image model. Pure numpy/OpenCV; every function of time is vectorised over arrays of times.
 
-Conventions (core/geometry.py): camera x right, y down, z forward; R maps world rays to camera rays;
+Conventions (camera/geometry.py): camera x right, y down, z forward; R maps world rays to camera rays;
 pan + turns the optical axis right (+x), tilt + turns it up (-y). The world frame is the camera at
 pan = tilt = 0, so the world y axis points DOWN.
 
@@ -14,7 +14,7 @@ runs from +pi/2 (top row) to -pi/2. Pixel j covers [j, j + 1) of the W columns, 
 coordinate j (OpenCV's convention), hence x_pano = (lon / 2pi + 1/2) W - 1/2, y_pano = (1/2 - lat/pi) H - 1/2.
 
 Ground truth of a rendered frame (what the renderer computes, exactly, per output pixel):
-    x_u = division_undistort(x_d, lam, c = (cx, cy), f = fx)      (core/distortion.py)
+    x_u = division_undistort(x_d, lam, c = (cx, cy), f = fx)      (camera/distortion.py)
     d_world = R^T K^-1 [x_u, 1]                                     (eq. 3 inverted)
 so a world direction X lands on x_d = division_distort(dehomog(K R X), lam, c, fx), and between two
 distortion-free frames the infinite homography H_ij = K_j R_j R_i^T K_i^-1 (eq. 8) is exact.
@@ -30,8 +30,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import ndtri
 
-from ptz_selfcal.core.distortion import division_lambda_for_corner_shift, division_undistort
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift, division_undistort
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 
 Array = NDArray[np.float64]
 

@@ -12,7 +12,7 @@ by the residual variance, gives the 1-sigma uncertainty of every focal length an
 
 Radial distortion (section 7, beyond the paper): with `distortion=True` every frame also has a
 division-model coefficient lam_i about its principal point, on normalised coordinates n = K^-1 x
-(core/distortion.py's convention): the observation is the DISTORTED pixel
+(camera/distortion.py's convention): the observation is the DISTORTED pixel
 x_ij = K_i (s n),  n = proj(R_i X_j),  s = 2 / (1 + sqrt(1 - 4 lam_i |n|^2)),
 so the principal point is also the distortion centre. In rotation-only data the two cannot be told
 apart when they are estimated separately (a corrected homography's principal point follows the
@@ -20,7 +20,7 @@ assumed centre); tied together and fitted to the raw points, the distortion patt
 centre (tests/unit/test_bundle.py, benchmarks/distortion.py). lam_i is either free per frame
 (distortion="frame"), one coefficient shared by every frame (distortion="shared": a fixed lens, whose
 distortion does not change between images) or on a curve of the focal length (distortion="curve",
-section 7.2's second option, eq. 35 with core/distortion_estimation.DistortionVsFocal's better-behaved
+section 7.2's second option, eq. 35 with lens/estimation.DistortionVsFocal's better-behaved
 form): the corner shift s = c0 + c1 u + c2 u^2, u = f_ref / f_i, lam_i = -s / ((1 + s) (D / f_i)^2),
 D the half-diagonal. Per-frame coefficients at long focal lengths trade off against the focal length
 (both act at second order over a narrow field of view); the curve keeps three unknowns for the whole
@@ -39,9 +39,8 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.degeneracy import analyse_motion, single_axis_is_degenerate
-from ptz_selfcal.core.distortion import half_diagonal
-from ptz_selfcal.core.intrinsics import (
+from ptz_selfcal.camera.distortion import half_diagonal
+from ptz_selfcal.camera.intrinsics import (
     ASPECT,
     CX,
     CY,
@@ -57,7 +56,8 @@ from ptz_selfcal.core.intrinsics import (
     parameter_index,
     values_from_matrices,
 )
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+from ptz_selfcal.selfcal.degeneracy import analyse_motion, single_axis_is_degenerate
+from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -837,7 +837,7 @@ def bundle_adjust(
     for "shared"); the result's info carries "lam" (n,), "sigma_lam" (n,) and, for a curve,
     "distortion_curve" (coefficients, f_ref, half-diagonal).
     initial_damping: LM's starting damping (relative to the diagonal of the normal equations). The
-    keyframe adjustment (core/calibration_state) starts at 1e-9: from 1e-6 it crept along a pan's
+    keyframe adjustment (online/session) starts at 1e-9: from 1e-6 it crept along a pan's
     near-ambiguity (section 6.2), the damping falling tenfold per accepted iteration before the step
     could follow the flat direction (real sets: 1.5x the iterations, same solution).
     max_focal_change: stop (message "focal length moved beyond max_focal_change") once an accepted
@@ -1092,7 +1092,7 @@ def default_pp_prior(image_size: tuple[int, int], sigma: float = 10.0) -> tuple[
 
 
 # ---------------------------------------------------------------------------------------------------
-# Keyframe solver for the incremental calibrator (core/incremental.py's solver seam)
+# Keyframe solver for the incremental calibrator (online/incremental.py's solver seam)
 # ---------------------------------------------------------------------------------------------------
 
 REFERENCE = None  # id naming the calibration's reference frame (frame 0) in keyframe matches

@@ -5,7 +5,7 @@ its keyframe -> frame homography and pyramidal KLT (forward-backward checked) me
 motion of the keyframe's corners. Every track is thus a measured keyframe position paired with a
 current position, without the drift of frame-to-frame chaining and without the bias translational
 KLT has under zoom (klt_source="frame" gives classic frame-to-frame KLT). The keyframe -> frame
-infinite homography comes from seeded USAC/MAGSAC, then LM on the inliers (core.homography).
+infinite homography comes from seeded USAC/MAGSAC, then LM on the inliers (frontend.homography).
 A new keyframe is made when the overlap, the scale or the surviving tracks drop. It is linked to its
 parent (the tracked fit) and to older overlapping keyframes, fewest hops to the reference first, each
 re-measured independently of the chain (photometric KLT against the warped older keyframe, with
@@ -43,7 +43,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.core.features import (
+from ptz_selfcal.camera.geometry import apply_homography, homography_work_to_full, work_from_full
+from ptz_selfcal.frontend.features import (
     Descriptors,
     KltParams,
     RobustFit,
@@ -55,7 +56,6 @@ from ptz_selfcal.core.features import (
     track_klt,
     usac_params,
 )
-from ptz_selfcal.core.geometry import apply_homography, homography_work_to_full, work_from_full
 
 Array = NDArray[np.float64]
 Points = NDArray[np.float32]

@@ -13,7 +13,7 @@ links from the reference, gives 0.7 px and f within 0.1% (benchmarks/distortion.
 
 `LensCorrection` does exactly that, online and in bounded time:
 - `add_match(newer, older, pts_newer, pts_older)`: the tracker's KeyframeMatches (raw, distorted,
-  full-resolution inliers). They feed core/distortion_estimation.KeyframeDistortionEstimator (one
+  full-resolution inliers). They feed lens/estimation.KeyframeDistortionEstimator (one
   division coefficient per keyframe jointly with the pair homographies; the lam(f) curve) and, for each
   keyframe, its best link to an older keyframe (most points) for the chain.
 - `set_keyframe(id, f, centre)`: the calibrator's current focal length / principal point of a keyframe.
@@ -42,7 +42,7 @@ The distortion centre. In rotation-only data it is nearly interchangeable with t
 when the two are estimated apart (self-calibration on corrected homographies follows the assumed
 centre almost one to one; feeding its principal point back as the centre diverged, -210 px). So the
 keyframe bundle adjustment estimates them as ONE point, with the distortion, on the raw keyframe
-matches (core/bundle.py distortion="curve", core/calibration_state.KeyframeBundleSolver with
+matches (bundle/adjust.py distortion="curve", online/session.KeyframeBundleSolver with
 `SessionLensHook` as its `lens`): no corrected data enters it, so there is no feedback loop. Once its
 principal point's 1-sigma is below `centre_gate_px` the hook makes it the centre here (`set_centre`)
 and the adjustment's per-keyframe coefficients and lam(f) curve replace the estimator's (`set_joint`).
@@ -73,15 +73,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.distortion import division_distort, division_to_plumb_bob, division_undistort
-from ptz_selfcal.core.distortion_estimation import (
+from ptz_selfcal.camera.distortion import division_distort, division_to_plumb_bob, division_undistort
+from ptz_selfcal.camera.geometry import normalise_homography
+from ptz_selfcal.camera.intrinsics import SelfCalibrationError
+from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.lens.estimation import (
     DistortionVsFocal,
     KeyframeDistortionEstimator,
     undistorted_homography,
 )
-from ptz_selfcal.core.geometry import normalise_homography
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.intrinsics import SelfCalibrationError
 
 Array = NDArray[np.float64]
 
@@ -638,7 +638,7 @@ class LensCorrection:
 # The calibrator node's seam
 # --------------------------------------------------------------------------------------------------
 class SessionLensHook:
-    """LensCorrection in front of a calibration session (core/calibration_state.CalibratorSession).
+    """LensCorrection in front of a calibration session (online/session.CalibratorSession).
 
     The node calls, in its three threads of control:
     - `frame(H, state, keyframe_id, reference, width, height)` (frame callback): the tracked homography
@@ -820,7 +820,7 @@ class SessionLensHook:
 
     def _take_joint_estimate(self, session: Any, lens: LensCorrection) -> bool:
         """With joint_bundle: plug the distortion guess into the session's solver (its adjustment then
-        runs on raw points, core/bundle.py distortion=True) and take its principal point as the
+        runs on raw points, bundle/adjust.py distortion=True) and take its principal point as the
         distortion centre, and its coefficients, once its 1-sigma is below centre_gate_px; True when
         they changed."""
         solver = getattr(session, "solver", None)

@@ -1,7 +1,7 @@
 """Non-linear self-calibration by Levenberg-Marquardt on eq. 22 (paper section 3.3.1).
 
 Cost: D = sum_j || K_j K_j^T / |.|_F - H_j K_0 K_0^T H_j^T / |.|_F ||_F^2 over the unknown intrinsics
-of every frame, each intrinsic KNOWN, CONSTANT or VARYING (core.intrinsics). Solved in coordinates
+of every frame, each intrinsic KNOWN, CONSTANT or VARYING (camera.intrinsics). Solved in coordinates
 centred at the image centre and scaled by a nominal focal length, with an analytic Jacobian.
 
 Pitfall (DESIGN.md): with a per-frame principal point eq. 22 has an exact zero-cost solution as
@@ -14,8 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-from ptz_selfcal.core.degeneracy import analyse_motion, single_axis_is_degenerate
-from ptz_selfcal.core.intrinsics import (
+from ptz_selfcal.camera.intrinsics import (
     ASPECT,
     CX,
     CY,
@@ -33,7 +32,8 @@ from ptz_selfcal.core.intrinsics import (
     rotations_from_homographies,
     values_from_parameters,
 )
-from ptz_selfcal.core.linear_selfcal import (
+from ptz_selfcal.selfcal.degeneracy import analyse_motion, single_axis_is_degenerate
+from ptz_selfcal.selfcal.linear import (
     linear_selfcalibration,
     normalise_homographies,
     normalising_transform,

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.core.geometry import apply_homography
-from ptz_selfcal.core.homography import refine_homography
+from ptz_selfcal.camera.geometry import apply_homography
+from ptz_selfcal.frontend.homography import refine_homography
 
 Array = NDArray[np.float64]
 Points = NDArray[np.float32]

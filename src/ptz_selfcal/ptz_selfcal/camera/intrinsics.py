@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.geometry import quaternion_from_matrix
+from ptz_selfcal.camera.geometry import quaternion_from_matrix
 
 if TYPE_CHECKING:
-    from ptz_selfcal.core.degeneracy import MotionReport
+    from ptz_selfcal.selfcal.degeneracy import MotionReport
 
 Array = NDArray[np.float64]
 

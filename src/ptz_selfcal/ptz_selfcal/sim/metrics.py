@@ -6,7 +6,7 @@
   angle(R_i R_j^T)| with R from ground truth or from the pan/tilt encoders. Pairs come from
   `frame_pairs`: every frame with partners at a fixed stride ahead of it.
 - coverage: fraction of input images that got a CameraInfo with the same stamp.
-- distortion: `core.distortion.max_distortion_difference` (principal point error excluded).
+- distortion: `camera.distortion.max_distortion_difference` (principal point error excluded).
 - summaries over all frames and over the frames after the first 10% (warm-up).
 
 Arrays are indexed by input frame; NaN marks "no estimate for this frame" and is left out of the
@@ -21,8 +21,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.distortion import max_distortion_difference
-from ptz_selfcal.core.geometry import nearest_rotation, pan_tilt_from_rotation, ptz_rotation
+from ptz_selfcal.camera.distortion import max_distortion_difference
+from ptz_selfcal.camera.geometry import nearest_rotation, pan_tilt_from_rotation, ptz_rotation
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]

@@ -7,7 +7,7 @@ transfer error over one division-model coefficient per keyframe and one homograp
 
     min  sum_pairs sum_points |d_j(H u_i(x_i)) - x_j|^2 + |d_i(H^-1 u_j(x_j)) - x_i|^2
 
-(u_k / d_k = undistortion / distortion with lam_k, see core/distortion.py). This is the paper's first
+(u_k / d_k = undistortion / distortion with lam_k, see camera/distortion.py). This is the paper's first
 option (one kappa per image) but on homographies instead of the full bundle adjustment: the homography
 absorbs K and R, so the problem is small and well conditioned. Optionally the coefficients are tied by
 the distortion-versus-focal curve (the paper's second option, eq. 35, with a better-behaved curve):
@@ -28,9 +28,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.distortion import division_undistort, half_diagonal
-from ptz_selfcal.core.geometry import apply_homography, pixel_grid
-from ptz_selfcal.core.homography import estimate_homography, homography_dlt
+from ptz_selfcal.camera.distortion import division_undistort, half_diagonal
+from ptz_selfcal.camera.geometry import apply_homography, pixel_grid
+from ptz_selfcal.frontend.homography import estimate_homography, homography_dlt
 
 Array = NDArray[np.float64]
 

@@ -1,7 +1,7 @@
 """The calibrator's per-frame logic and what it persists (pure: numpy + the calibration core, no rclpy).
 
 `CalibratorSession` is everything the calibrator node does between "a HomographyStamped arrived" and
-"publish this K". It wraps `core.incremental.IncrementalCalibrator` (initialisation once the motion is
+"publish this K". It wraps `online.incremental.IncrementalCalibrator` (initialisation once the motion is
 well posed, section 6; bounded keyframe set; O(1) per-frame K by DIAC transfer) and plugs into its
 solver seam `KeyframeBundleSolver`: LM on eq. 22 (section 3.3.1, initialised by the linear method of
 3.3.2 inside lm_selfcalibration) refined by the keyframe bundle adjustment with the MAP
@@ -48,36 +48,41 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from ptz_selfcal.core.atomic_file import atomic_write_text, remove_stale_temporaries
-from ptz_selfcal.core.bundle import bundle_adjust, pair_observations
-from ptz_selfcal.core.degeneracy import STATUS_NEAR_AMBIGUOUS
-from ptz_selfcal.core.distortion import division_to_plumb_bob
-from ptz_selfcal.core.geometry import apply_homography, intrinsic_matrix, pixel_grid, rotation_from_homography
-from ptz_selfcal.core.incremental import (
+from ptz_selfcal.camera.distortion import division_to_plumb_bob
+from ptz_selfcal.camera.geometry import (
+    intrinsic_matrix,
+    rotation_from_homography,
+)
+from ptz_selfcal.camera.intrinsics import (
+    SelfCalibrationError,
+)
+from ptz_selfcal.online.config import SessionConfig
+from ptz_selfcal.online.frames import FrameInput, FrameOutput
+from ptz_selfcal.online.incremental import (
     CalibrationState,
     IncrementalCalibrator,
-    Keyframe,
     focal_disagrees,
     image_motion,
     intrinsics_from_transferred_diac,
 )
-from ptz_selfcal.core.intrinsics import (
-    IntrinsicsModel,
-    ParamMode,
-    SelfCalibrationError,
-    SelfCalibrationResult,
-    image_centre,
+from ptz_selfcal.online.keyframe_solver import (
+    KeyframeBundleSolver,
+    KeyframeMatchSet,
 )
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
-from ptz_selfcal.core.zoom_model import ZoomModel, ZoomModelError, ZoomRate
+from ptz_selfcal.persist.atomic_file import atomic_write_text, remove_stale_temporaries
+from ptz_selfcal.persist.state_files import (
+    STATE_FILE,
+    STATE_VERSION,
+    ZOOM_MODEL_FILE,
+    StateFileError,
+    load_yaml_file,
+)
+from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError, ZoomRate
 
 Array = NDArray[np.float64]
 
 _LOG = logging.getLogger(__name__)
 
-STATE_VERSION = 1
-STATE_FILE = "calibration_state.yaml"
-ZOOM_MODEL_FILE = "zoom_model.yaml"
 
 # FrameCalibration status names (the message constants have the same names).
 INITIALISING = "INITIALISING"
@@ -93,641 +98,6 @@ _PASS, _HOLD, _REFUSE = "pass", "hold", "refuse"
 
 # HomographyStamped.state names that carry a usable homography.
 TRACKING_STATES_WITH_H = ("TRACKING", "NEW_KEYFRAME", "RELOCALISED")
-
-
-# --------------------------------------------------------------------------------------------------
-# State files
-# --------------------------------------------------------------------------------------------------
-class StateFileError(Exception):
-    """A state file that exists but cannot be used (corrupt, wrong version, wrong camera)."""
-
-
-def load_yaml_file(path: str | os.PathLike[str]) -> dict | None:
-    """The mapping in a YAML file; None when the file does not exist; StateFileError when unusable."""
-    path = Path(path)
-    if not path.exists():
-        return None
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        first = (str(exc).splitlines() or [""])[0]
-        raise StateFileError(f"{path}: unreadable ({type(exc).__name__}: {first})") from exc
-    if not isinstance(data, dict):
-        raise StateFileError(f"{path}: not a YAML mapping")
-    return data
-
-
-# --------------------------------------------------------------------------------------------------
-# Inputs and outputs of one frame
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class FrameInput:
-    """What the calibrator knows about one image (from its HomographyStamped)."""
-
-    stamp: float  # seconds
-    H: Array | None  # reference -> this frame, full-resolution pixels (None: no homography)
-    tracking_state: str  # HomographyStamped state name
-    width: int
-    height: int
-    keyframe_id: int = 0
-    reference_id: str = ""
-    zoom: float = math.nan  # zoom encoder (NaN when invalid)
-
-
-@dataclass
-class FrameOutput:
-    """The calibration of one image: what goes into its CameraInfo and FrameCalibration."""
-
-    status: str
-    K: Array
-    D: Array  # plumb_bob [k1, k2, 0, 0, 0]
-    R: Array | None  # orientation relative to the calibration's reference frame (None: unknown)
-    sigma_f: float
-    sigma_cx: float
-    sigma_cy: float
-    residual: float
-    keyframe_id: int
-    keyframe_count: int
-    source: str  # where K came from: calibration / prior / zoom_model / last_good / nominal
-    message: str = ""
-    time_s: float = 0.0
-
-
-@dataclass
-class SessionConfig:
-    nominal_focal_px: float = 0.0  # > 0 overrides nominal_hfov_deg
-    nominal_hfov_deg: float = 60.0
-    min_rotation_deg: float = 2.0  # keyframe rotation needed before the first solve (section 6)
-    min_keyframes: int = 4
-    max_keyframes: int = 30
-    bundle_adjustment: bool = True
-    ba_principal_point: str = "constant"  # "constant" or "varying" (per keyframe), both with the prior
-    pp_prior_sigma_px: float = 20.0  # MAP principal point prior (eq. 27), 1-sigma each axis
-    ba_noise_sigma_px: float = 1.0  # image noise that weighs the prior (eq. 27)
-    ba_max_points_per_pair: int = 50
-    # with distortion estimated in the adjustment (raw points): more per pair, the distortion centre
-    # needs them (issue-6 bag replayed: focal median 0.32% with 50, 0.22% with 200)
-    ba_distortion_points_per_pair: int = 200
-    ba_max_iterations: int = 30
-    # the adjustment stops when an iteration lowers its cost by less than this fraction: a step worth
-    # < 1e-6 of the cost moved the unknowns by ~sqrt(1e-6 dof) ~ 0.1 of their 1-sigma at most (dof ~
-    # 1e4 residuals); the former 1e-10 spent a third of a warm-started adjustment's iterations
-    # creeping along the near-ambiguity of a pan before its loop closes (real sets: same final f)
-    ba_tolerance: float = 1e-6
-    # LM's starting damping in the adjustment (bundle_adjust initial_damping): 1e-6 crept along a
-    # pan's near-ambiguity (real sets: 66-91 iterations over a set instead of 42-77, same solutions)
-    ba_initial_damping: float = 1e-9
-    max_match_pairs: int = 256
-    max_focal_ratio: float = 20.0  # homographies scaling more than this are tracker failures
-    prior_sigma_f_fraction: float = 0.3  # 1-sigma reported for f from nominal parameters
-    zoom_model_min_keyframes: int = 4  # converged keyframes before the zoom model is used
-    # CPU share of the re-optimisation (the node runs it beside the tracker on the same cores): after a
-    # solve of t seconds the next waits max(min_solve_period_s, t (1 - duty) / duty); 0 = no limit
-    min_solve_period_s: float = 0.0
-    max_solve_duty: float = 1.0
-    # Frame gates (issue 7). A homography whose K (DIAC transfer, eq. 20) contradicts the zoom model at
-    # the frame's zoom encoder by more than max(zoom_gate_floor, zoom_gate_sigmas sigma) in log f, inside
-    # the model's learned zoom range, is refused: PREDICTED_FROM_ZOOM, never a keyframe of the solve.
-    zoom_gate_sigmas: float = 4.0
-    zoom_gate_floor: float = 0.1
-    zoom_gate_still: float = 0.01  # judged only while the zoom encoder changes less per frame
-    # Keyframes of a fast move (image corners moving more than this many image widths per second, i.e.
-    # 20 % of the width per frame at 30 fps: a preset recall, not tracking) stay out of the solve: their
-    # homographies chain over small overlaps and drift, and real cameras blur them. Their frames are
-    # still calibrated. (The CI synth bag's sweep moves up to ~11 % per frame.)
-    max_keyframe_motion: float = 6.0
-    # "varying": a zooming camera, f per keyframe (pan-only motion is DEGENERATE_MOTION, section 6.1).
-    # "constant": a fixed lens, one f and one principal point for every image (square pixels, zero
-    # skew): a pan alone calibrates it (degeneracy.single_axis_is_degenerate); every frame has that K.
-    focal_model: str = "varying"
-    # Fixed lens only: ONE radial (division) coefficient about the principal point for every image,
-    # estimated with K in the keyframe bundle adjustment on the raw keyframe matches (bundle.py
-    # distortion="shared"). A zooming lens estimates distortion through core/lens_correction instead.
-    estimate_distortion: bool = False
-    # Fixed lens: CONVERGED (what a user may take as the calibration) also needs the focal length's
-    # 1-sigma below this fraction; above it a stable solution is still CALIBRATING (DESIGN.md 5.5:
-    # uncertainty reported instead of confident nonsense). A hand-held pan's sigma_f is 2-5% before
-    # its loop closes, 0.02-0.04% after (the real sets, benchmarks/peers.py).
-    converged_max_sigma_f: float = 0.01
-    # Fixed lens: CONVERGED also needs f to move by less than this fraction when the adjustment's
-    # radial term is toggled (KeyframeBundleSolver._lens_model_change): sigma_f measures the noise, not
-    # the lens model's bias (grail before its loop closes: sigma_f 0.7%, 5-7% off AutoStitch, 18% apart
-    # with and without the radial term; after: 0.9%). Conservative: a strongly distorted lens whose
-    # pan never closes a loop stays CALIBRATING.
-    converged_max_lens_model_change: float = 0.02
-
-    def __post_init__(self) -> None:
-        if self.focal_model not in ("varying", "constant"):
-            raise ValueError(f"focal_model must be 'varying' or 'constant', not {self.focal_model!r}")
-
-    @property
-    def fixed_lens(self) -> bool:
-        return self.focal_model == "constant"
-
-    def intrinsics_model(self) -> IntrinsicsModel:
-        """The self-calibration model (section 3.3.1): square pixels, zero skew, a constant principal
-        point, and f varying per frame or (a fixed lens) constant."""
-        if self.fixed_lens:
-            return IntrinsicsModel(focal=ParamMode.CONSTANT)
-        return IntrinsicsModel()
-
-    def nominal_focal(self, width: int) -> float:
-        if self.nominal_focal_px > 0.0:
-            return float(self.nominal_focal_px)
-        return 0.5 * width / math.tan(math.radians(0.5 * self.nominal_hfov_deg))
-
-
-# --------------------------------------------------------------------------------------------------
-# The solver plugged into IncrementalCalibrator's seam: LM (eq. 22), then keyframe BA (eq. 27)
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class KeyframeMatchSet:
-    """Inlier point pairs between two keyframes (full-resolution pixels)."""
-
-    keyframe_id: int
-    other_keyframe_id: int
-    points: Array  # (N, 2) in keyframe_id
-    other_points: Array  # (N, 2) in other_keyframe_id
-
-
-class KeyframeBundleSolver:
-    """SolverFn for IncrementalCalibrator: LM on eq. 22, refined by MAP bundle adjustment (eq. 27).
-
-    Frame 0 of the solve is the calibration reference (the tracker's reference keyframe), frames
-    1.. the calibrator's keyframes. Observations are the tracker's keyframe matches between frames of
-    the solve; a frame without any match gets virtual correspondences from its homography to the
-    reference (grid points visible in both) so that it stays in the adjustment. When the adjustment
-    fails or is not better posed, the LM result is returned.
-
-    Radial distortion (core/lens_correction.SessionLensHook sets `lens`): the matches are then RAW
-    (distorted) pixels and the adjustment estimates one division coefficient per frame about the
-    principal point with everything else (core/bundle.py, distortion=True), starting from
-    lens.lam_guess(keyframe_id, f); a frame's virtual correspondences (its homography is on corrected
-    pixels) are distorted back with the lens model that corrected it, lens.distort(keyframe_id, pts),
-    so that they stand for the raw points and carry no assumption about the distortion centre.
-    The prior of eq. 27 is weighed with the image noise of the previous accepted solve (its residual
-    standard deviation, within [0.02, ba_noise_sigma_px]), with or without distortion: tracked matches
-    fit to ~0.05-0.15 px, and a prior weighed for the printed 1 px noise acts as a ~10x too strong
-    prior that pulls the principal point (and, near the ambiguity of a long focal length, f) to the
-    image centre. `lens_estimate` keeps the last such solution for the hook. Keyframe id None = the reference.
-    A fixed lens's solves after the first start the adjustment from the previous one (_warm_start)
-    rather than from LM, and its lens-model check runs only when the session asks for it.
-    """
-
-    def __init__(self, config: SessionConfig, matches: OrderedDict[tuple[int, int], KeyframeMatchSet]):
-        self.config = config
-        self.matches = matches
-        self.reference_keyframe_id: int | None = None
-        self.rotations: dict[Any, Array] = {}  # keyframe id -> R relative to the reference (last solve)
-        self.last_method = ""
-        self.last_message = ""
-        self.sigma_f: dict[Any, float] = {}  # keyframe id -> 1-sigma of f in the last accepted solve
-        self.lens: Any = None  # lam_guess(keyframe_id, f), distort(keyframe_id, pts); None: undistorted
-        self.lens_estimate: LensEstimate | None = None
-        self.noise_estimate: float | None = None  # px, residual sigma of the last accepted solve
-        self.distortion_mode = "curve"  # lam per frame on a lam(f) curve ("curve") or free ("frame")
-        # a fixed lens with estimate_distortion: the one division coefficient and its 1-sigma
-        self.shared_lam: float | None = None
-        self.sigma_shared_lam = math.nan
-        # a fixed lens: see _lens_model_change (last solve), measured when first asked for (the
-        # session asks only when the solve could otherwise be CONVERGED)
-        self._lens_model_change_value = math.nan
-        self._lens_check: tuple | None = None  # the solve's inputs until it is measured
-        # a fixed lens: the last adjustment (reference keyframe id, K, keyframe id -> R), _warm_start
-        self._warm: tuple[Any, Array, dict[Any, Array]] | None = None
-
-    def __call__(
-        self,
-        H: Array,
-        image_size: tuple[int, int],
-        model: IntrinsicsModel,
-        K_init: Array | None,
-        keyframes: list[Keyframe],
-        max_nfev: int,
-    ) -> SelfCalibrationResult:
-        if self.lens is not None:
-            # the keyframes' homographies as the lens correction has them now (chained or provisional):
-            # the ones stored at arrival may come from an older correction, and the frames are
-            # corrected with the current one (a stale keyframe homography put its frames 1% off)
-            H = H.copy()
-            for i, kf in enumerate(keyframes, start=1):
-                H_now = self.lens.keyframe_homography(kf.keyframe_id)
-                if H_now is not None and np.all(np.isfinite(H_now)):
-                    kf.H = H[i] = H_now
-        result = None
-        warm = self._warm_start(H, keyframes)
-        if warm is not None:
-            self.last_method, self.last_message = warm.method, ""
-            result = self._refine(H, image_size, warm, keyframes)
-            if result is warm or not _usable(result):
-                result = None  # LM on eq. 22 and the adjustment from it, as for the first solve
-        if result is None:
-            # LM on <= max_keyframes + 1 homographies takes milliseconds: the calibrator's time-derived
-            # evaluation budget (which also counts the adjustment) would stop it short of convergence
-            lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max(int(max_nfev), 100))
-            self.last_method, self.last_message = lm.method, lm.message
-            result = self._refine(H, image_size, lm, keyframes)
-        self._keep_warm_start(result, keyframes)
-        if result.ok:
-            self.rotations = {kf.keyframe_id: R for kf, R in zip(keyframes, result.R[1:])}
-            # 1-sigma of each frame's f (the adjustment's Jacobian): the zoom model's sample weights
-            ids = [self.reference_keyframe_id, *(kf.keyframe_id for kf in keyframes)]
-            self.sigma_f = {k: float(s) for k, s in zip(ids, np.ravel(result.sigma_f)) if k is not None}
-        return result
-
-    def _warm_start(self, H: Array, keyframes: list[Keyframe]) -> SelfCalibrationResult | None:
-        """A fixed lens: the adjustment's start from its previous solution instead of LM on eq. 22.
-
-        LM on a hand-held pan's homographies is 8-18% off in f (the real sets), so an adjustment
-        started there spends 10-30 iterations walking back to where the previous one ended; one more
-        still moves the solution by a fraction of a per cent. K is the previous adjustment's, each
-        keyframe it held keeps its rotation, a new keyframe gets the rotation of its homography
-        relative to the nearest held one (the direct link, not the chain from the reference). None
-        (LM as for the first solve) for a zooming lens, without a previous adjustment, or when it
-        holds none of these keyframes.
-        """
-        if not (self.config.fixed_lens and self.lens is None and self.config.bundle_adjustment):
-            return None
-        warm = self._warm
-        ids = [kf.keyframe_id for kf in keyframes]
-        if warm is None or warm[0] != self.reference_keyframe_id or not any(k in warm[2] for k in ids):
-            return None
-        K, held = warm[1], warm[2]
-        R = np.empty((len(H), 3, 3))
-        R[0] = np.eye(3)
-        known = [0] + [j for j, k in enumerate(ids, start=1) if k in held]
-        for j, k in enumerate(ids, start=1):
-            if k in held:
-                R[j] = held[k]
-        for j in range(1, len(H)):
-            if ids[j - 1] in held:
-                continue
-            i = min(known, key=lambda i: (abs(i - j), i))  # nearest held frame (the previous one first)
-            R[j] = rotation_from_homography(H[j] @ np.linalg.inv(H[i]), K, K) @ R[i]
-        n = len(H)
-        return SelfCalibrationResult(
-            K=np.repeat(K[None], n, axis=0),
-            R=R,
-            sigma_f=np.full(n, np.nan),
-            sigma_pp=np.full((n, 2), np.nan),
-            residual=math.nan,
-            method="warm",
-            info={"solver_ok": True},
-        )
-
-    def _keep_warm_start(self, result: SelfCalibrationResult, keyframes: list[Keyframe]) -> None:
-        """Remember an accepted adjustment (reference, K, keyframe id -> R) for _warm_start."""
-        adjusted = "rays" in result.info and _usable(result)
-        if not (self.config.fixed_lens and adjusted and np.all(np.isfinite(result.R))):
-            return
-        held = {kf.keyframe_id: R.copy() for kf, R in zip(keyframes, result.R[1:])}
-        self._warm = (self.reference_keyframe_id, result.K[0].copy(), held)
-
-    def forget_warm_start(self) -> None:
-        """The next solve starts from LM on eq. 22 (a new map or restored keyframes)."""
-        self._warm = None
-
-    def _refine(
-        self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
-    ) -> SelfCalibrationResult:
-        self._lens_model_change_value, self._lens_check = math.nan, None  # this solve's, if any
-        # raw-point solve: an LM start flagged only for its motion (section 6.2, LM on corrected
-        # homographies) is still refined, the adjustment's own analysis decides
-        # a fixed lens likewise: LM on homographies of a pan flags a near-ambiguity that the
-        # adjustment on the point matches resolves (measured on the real hand-held sets)
-        usable = lm.ok or (
-            (self.lens is not None or self.config.fixed_lens)
-            and bool(lm.info.get("solver_ok", False))
-            and bool(np.all(np.isfinite(lm.K)))
-        )
-        if not usable or not self.config.bundle_adjustment:
-            return lm
-        try:
-            ba = self._bundle(H, image_size, lm, keyframes)
-        except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
-            self.last_message = f"bundle adjustment skipped: {exc}"
-            return lm
-        if ba is not None and self.config.fixed_lens and _uncertain_motion(ba):
-            # a fixed lens: the adjustment's near-ambiguity verdict (6.2) stands, with its own estimate
-            # (uncertain: DEGENERATE_MOTION), rather than LM's confident one on homographies
-            # (the real sets before their loop closes: LM 8-18% off with a 1-2% sigma)
-            ba.info["solver_ok"] = True
-            self.last_method = ba.method
-            ba.method = f"{lm.method}+{ba.method}"
-            return ba
-        if ba is None or not ba.ok or not np.all(np.isfinite(ba.K)):
-            self.last_message = "bundle adjustment failed: " + (
-                "no observations" if ba is None else ba.message
-            )
-            return lm
-        self.last_method = ba.method
-        ba.method = f"{lm.method}+{ba.method}"
-        return ba
-
-    def _bundle(
-        self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
-    ) -> SelfCalibrationResult | None:
-        index = {kf.keyframe_id: i + 1 for i, kf in enumerate(keyframes)}
-        if self.reference_keyframe_id is not None:
-            index[self.reference_keyframe_id] = 0
-        ids = [self.reference_keyframe_id, *(kf.keyframe_id for kf in keyframes)]
-        n_frames = len(H)
-        fixed = self.config.fixed_lens
-        shared = fixed and self.config.estimate_distortion and self.lens is None
-        lam0 = None
-        if self.lens is not None:
-            lm = self._with_connectors(lm, index, ids, image_size)
-            lam0 = np.array([_guess(self.lens.lam_guess, k, float(K[1, 1])) for k, K in zip(ids, lm.K)])
-        elif shared:  # raw matches, one coefficient for the lens (section 7), from the last estimate
-            lam0 = np.full(len(lm.K), self.shared_lam or 0.0)
-        rng = np.random.default_rng(0)
-        limit = self.config.ba_max_points_per_pair
-        if lam0 is not None:
-            limit = max(limit, self.config.ba_distortion_points_per_pair)
-        pairs: list[tuple[int, int, Array, Array]] = []
-        for m in self.matches.values():
-            a, b = index.get(m.keyframe_id), index.get(m.other_keyframe_id)
-            if a is None or b is None or a == b or len(m.points) < 8:
-                continue
-            pa, pb = m.points, m.other_points
-            if len(pa) > limit:
-                keep = np.sort(rng.choice(len(pa), limit, replace=False))
-                pa, pb = pa[keep], pb[keep]
-            pairs.append((a, b, pa, pb))
-        if not pairs:
-            return None
-        seen = np.zeros(len(lm.K), bool)
-        for a, b, _, _ in pairs:
-            seen[a] = seen[b] = True
-        width, height = image_size
-        absent: list[int] = []
-        grid = None
-        for j in np.flatnonzero(~seen[: len(H)]):
-            # virtual correspondences reference <-> frame j from H_j (frame 0 <-> j when j > 0)
-            if j > 0 and lam0 is not None:
-                continue  # raw-point solve: left out below
-            grid = pixel_grid(width, height, 8) if grid is None else grid
-            if j == 0:
-                k = int(np.flatnonzero(seen[: len(H)])[0])
-                Hk = H[k]
-                src = grid
-                dst = apply_homography(Hk, src)
-                pairs.append((0, k, *_visible(src, dst, width, height)))
-            else:
-                dst = apply_homography(H[j], grid)
-                pairs.append((0, j, *_visible(grid, dst, width, height)))
-            if self.lens is not None:  # the homographies are on corrected pixels: distort the points
-                a, b, src, dst = pairs[-1]
-                src, dst = self.lens.distort(ids[a], src), self.lens.distort(ids[b], dst)
-                ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
-                pairs[-1] = (a, b, src[ok], dst[ok])
-        if lam0 is not None:
-            # raw-point solve: frames not linked to the reference by real matches (none of their own,
-            # or a group whose links went with dropped keyframes) are left out and keep their LM
-            # calibration with the adjusted principal point. Virtual correspondences from corrected
-            # homographies would tie them (and through the shared principal point every frame) to the
-            # centre the lens correction assumed; a detached group's scale is free (sigma_f of several %)
-            linked = _linked_to_reference(pairs, len(lm.K))
-            absent = [j for j in range(1, len(lm.K)) if not linked[j]]
-            pairs = [p for p in pairs if linked[p[0]] and linked[p[1]]]
-        if fixed:  # one K for every image: a per-keyframe principal point would not be a fixed lens
-            model = self.config.intrinsics_model()
-        else:
-            model = IntrinsicsModel(
-                principal_point=ParamMode.VARYING
-                if self.config.ba_principal_point == "varying"
-                else ParamMode.CONSTANT
-            )
-        sigma = self.config.pp_prior_sigma_px
-        prior = (np.array(image_centre(image_size)), np.array([sigma, sigma]))
-        noise = self.config.ba_noise_sigma_px
-        if self.noise_estimate is not None:  # eq. 27 weighed with the measured image noise
-            noise = min(max(self.noise_estimate, 0.02), noise)
-        keep = np.array([j for j in range(len(lm.K)) if j not in set(absent)], dtype=np.intp)
-        renumber = np.full(len(lm.K), -1, dtype=np.intp)
-        renumber[keep] = np.arange(len(keep))
-        pairs = [(int(renumber[a]), int(renumber[b]), pa, pb) for a, b, pa, pb in pairs]
-        result = bundle_adjust(
-            pair_observations(pairs),
-            lm.K[keep],
-            lm.R[keep],
-            image_size,
-            model,
-            pp_prior=prior,
-            noise_sigma=noise,
-            max_iterations=self.config.ba_max_iterations,
-            tolerance=self.config.ba_tolerance,
-            initial_damping=self.config.ba_initial_damping,
-            f_min=0.2 * float(np.min(lm.K[:, 1, 1])),
-            distortion=False if lam0 is None else ("shared" if shared else self.distortion_mode),
-            lam_init=None if lam0 is None else lam0[keep],
-        )
-        if (
-            lam0 is not None
-            and (result.ok or (shared and _uncertain_motion(result)))
-            and np.all(np.isfinite(result.info["lam"]))
-        ):
-            self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
-            if shared:
-                self.shared_lam = float(result.info["lam"][0])
-                self.sigma_shared_lam = float(result.info["sigma_lam"][0])
-            self.lens_estimate = LensEstimate(
-                principal_point=result.K[0, :2, 2].copy(),
-                sigma_pp=np.asarray(result.sigma_pp[0], dtype=float).copy(),
-                lam={ids[j]: float(lam) for j, lam in zip(keep, result.info["lam"]) if ids[j] is not None},
-                focal={ids[j]: float(K[1, 1]) for j, K in zip(keep, result.K) if ids[j] is not None},
-            )
-        if lam0 is None and result.ok:
-            self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
-        rel_sigma = float(np.ravel(result.sigma_f)[0]) / float(result.K[0, 1, 1])
-        if fixed and _usable(result) and rel_sigma <= self.config.converged_max_sigma_f:
-            # only when it can decide (above that sigma the solution is not CONVERGED anyway)
-            self._lens_check = (pairs, result, image_size, model, prior, noise)
-        if absent or len(lm.K) > n_frames:
-            # the frames left out: LM's focal length and rotation, the adjusted principal point
-            K, R = lm.K.copy(), lm.R.copy()
-            K[keep], R[keep] = result.K, result.R
-            K[absent, :2, 2] = result.K[0, :2, 2]
-            near = keep[keep < n_frames]
-            for j in absent:
-                if j >= n_frames or len(near) == 0:
-                    continue
-                # from the nearest adjusted frame through the short corrected homography between them
-                # (LM's own K carries the long chain's drift: 1.5% on the issue-6 bag)
-                k = int(near[np.argmin(np.abs(near - j))])
-                H_kj = H[j] @ np.linalg.inv(H[k])
-                with contextlib.suppress(
-                    SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError
-                ):
-                    transfer = self.config.intrinsics_model()  # IntrinsicsModel() for a zoom lens
-                    K_j = intrinsics_from_transferred_diac(H_kj, K[k], transfer, image_size)
-                    R_j = rotation_from_homography(H_kj, K[k], K_j) @ R[k]
-                    if np.all(np.isfinite(K_j)) and np.all(np.isfinite(R_j)):
-                        K[j], R[j] = K_j, R_j
-            sigma_f, sigma_pp = np.asarray(lm.sigma_f, dtype=float).copy(), np.asarray(lm.sigma_pp).copy()
-            sigma_f[keep], sigma_pp[keep] = result.sigma_f, result.sigma_pp
-            info = dict(result.info)
-            if lam0 is not None and "lam" in info:
-                lam = lam0.copy()
-                lam[keep] = info["lam"]
-                info["lam"] = lam[:n_frames]
-            result = dataclasses.replace(
-                result,
-                K=K[:n_frames],
-                R=R[:n_frames],
-                sigma_f=sigma_f[:n_frames],
-                sigma_pp=sigma_pp[:n_frames],
-                info=info,
-            )
-        return result
-
-    @property
-    def lens_model_change(self) -> float:
-        """A fixed lens: |f' / f - 1| of the last solve (_lens_model_change), NaN when not measured.
-        The second adjustment runs on the first request after the solve: the session asks for it only
-        when the solve could otherwise be published as CONVERGED."""
-        if self._lens_check is not None:
-            check, self._lens_check = self._lens_check, None
-            self._lens_model_change_value = self._lens_model_change(*check)
-        return self._lens_model_change_value
-
-    def _lens_model_change(
-        self,
-        pairs: list[tuple[int, int, Array, Array]],
-        result: SelfCalibrationResult,
-        image_size: tuple[int, int],
-        model: IntrinsicsModel,
-        prior: tuple[Array, Array],
-        noise: float,
-    ) -> float:
-        """A fixed lens: |f' / f - 1| with f' from the same adjustment with the radial term toggled
-        (one shared coefficient added when it is not estimated, removed when it is), started at the
-        solution. The disambiguating information of section 6.2 sits at the image edges, where the
-        lens model acts (section 7): a focal length that moves with the lens model is not pinned by
-        the geometry (the real hand-held sets before their loop closes: 13-20 %; after: < 1 %). At
-        most 6 iterations, and it stops once f has moved by twice converged_max_lens_model_change
-        (the verdict is made: 3-6 % after one or two iterations there), so a value above the bound
-        is how far f moved at least. NaN when the alternative does not solve."""
-        with_distortion = not self.config.estimate_distortion
-        try:
-            alt = bundle_adjust(
-                pair_observations(pairs),
-                result.K,
-                result.R,
-                image_size,
-                model,
-                rays_init=result.info.get("rays"),
-                pp_prior=prior,
-                noise_sigma=noise,
-                max_iterations=min(self.config.ba_max_iterations, 6),
-                # bundle_adjust's default damping: the solution is far from the alternative's minimum
-                # (from 1e-9 two of every three steps were refused: 3x the Schur solves, real sets)
-                distortion="shared" if with_distortion else False,
-                analyse=False,
-                max_focal_change=2.0 * self.config.converged_max_lens_model_change,
-                uncertainty=False,
-            )
-        except (SelfCalibrationError, ValueError, np.linalg.LinAlgError):
-            return math.nan
-        f, f_alt = float(result.K[0, 1, 1]), float(alt.K[0, 1, 1])
-        return abs(f_alt / f - 1.0) if alt.ok and math.isfinite(f_alt) else math.nan
-
-    def _with_connectors(
-        self, lm: SelfCalibrationResult, index: dict[Any, int], ids: list[Any], image_size: tuple[int, int]
-    ) -> SelfCalibrationResult:
-        """Raw-point solve: keyframes the calibrator dropped but matched to one it kept join the
-        adjustment as connectors (appended to index and ids, started from their corrected chain by
-        eq. 20), so that the kept keyframes stay linked to the reference by real matches."""
-        extra_K, extra_R = [], []
-        for m in list(self.matches.values()):
-            for inside, other in ((m.keyframe_id, m.other_keyframe_id), (m.other_keyframe_id, m.keyframe_id)):
-                if inside not in index or other in index or len(m.points) < 8:
-                    continue
-                H_c = self.lens.keyframe_homography(other)
-                if H_c is None:
-                    continue
-                try:
-                    K_c = intrinsics_from_transferred_diac(H_c, lm.K[0], IntrinsicsModel(), image_size)
-                    R_c = rotation_from_homography(H_c, lm.K[0], K_c)
-                except (SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError):
-                    continue
-                if np.all(np.isfinite(K_c)) and np.all(np.isfinite(R_c)):
-                    index[other] = len(ids)
-                    ids.append(other)
-                    extra_K.append(K_c)
-                    extra_R.append(R_c)
-        if not extra_K:
-            return lm
-        m_extra = len(extra_K)
-        return dataclasses.replace(
-            lm,
-            K=np.concatenate([lm.K, extra_K]),
-            R=np.concatenate([lm.R, extra_R]),
-            sigma_f=np.concatenate([np.asarray(lm.sigma_f, dtype=float), np.full(m_extra, np.nan)]),
-            sigma_pp=np.concatenate(
-                [np.asarray(lm.sigma_pp, dtype=float).reshape(-1, 2), np.full((m_extra, 2), np.nan)]
-            ),
-        )
-
-
-@dataclass(frozen=True)
-class LensEstimate:
-    """Distortion from the keyframe adjustment on raw points: the principal point (= distortion centre)
-    with its 1-sigma, and each frame's division coefficient lam at its focal length."""
-
-    principal_point: Array
-    sigma_pp: Array
-    lam: dict[int, float]
-    focal: dict[int, float]
-
-
-def _linked_to_reference(pairs: list[tuple[int, int, Array, Array]], n: int) -> NDArray[np.bool_]:
-    """(n,) whether each frame is connected to frame 0 through the pairs."""
-    neighbours: dict[int, set[int]] = {}
-    for a, b, pa, _ in pairs:
-        if len(pa):
-            neighbours.setdefault(a, set()).add(b)
-            neighbours.setdefault(b, set()).add(a)
-    linked = np.zeros(n, dtype=bool)
-    stack = [0]
-    linked[0] = True
-    while stack:
-        for k in neighbours.get(stack.pop(), ()):
-            if not linked[k]:
-                linked[k] = True
-                stack.append(k)
-    return linked
-
-
-def _usable(result: SelfCalibrationResult) -> bool:
-    """Accepted, or finite and flagged only for the near-ambiguity: a solution kept with its sigma."""
-    return result.ok or _uncertain_motion(result)
-
-
-def _uncertain_motion(result: SelfCalibrationResult) -> bool:
-    """A finite solution flagged only for the focal/rotation near-ambiguity (section 6.2)."""
-    motion = result.motion
-    return (
-        not result.ok
-        and motion is not None
-        and motion.status == STATUS_NEAR_AMBIGUOUS
-        and bool(np.all(np.isfinite(result.K)))
-        and bool(np.all(result.K[:, 1, 1] > 0.0))
-    )
-
-
-def _guess(guess: Any, keyframe_id: int | None, f: float) -> float:
-    try:
-        lam = float(guess(keyframe_id, f))
-    except (ValueError, ArithmeticError, KeyError):
-        return 0.0
-    return lam if math.isfinite(lam) else 0.0
-
-
-def _visible(src: Array, dst: Array, width: int, height: int) -> tuple[Array, Array]:
-    ok = np.isfinite(dst).all(axis=1)
-    ok &= (dst[:, 0] >= 0) & (dst[:, 0] <= width - 1) & (dst[:, 1] >= 0) & (dst[:, 1] <= height - 1)
-    return src[ok], dst[ok]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1162,7 +532,7 @@ class CalibratorSession:
         )
 
     def _distortion_of(self, K: Array) -> Array:
-        """plumb_bob D of a calibrated frame: from `distortion_model` (e.g. core/lens_correction's
+        """plumb_bob D of a calibrated frame: from `distortion_model` (e.g. lens/correction's
         SessionLensHook.distortion) when one is plugged in, else zeros (not estimated)."""
         model = self.distortion_model
         if model is None and self.solver.shared_lam is not None and self.image_size is not None:
@@ -1333,7 +703,7 @@ class CalibratorSession:
             self._learn_zoom_model(calibrator)
 
     def keyframe_homographies_changed(self) -> None:
-        """The calibrator's keyframe homographies were replaced in place (core/lens_correction's
+        """The calibrator's keyframe homographies were replaced in place (lens/correction's
         SessionLensHook after a distortion update): publish them, so that the frame thread composes a
         frame's homography and its keyframe's from the same correction (a stale keyframe homography
         against a re-corrected frame one: replayed issue-6 bag focal p90 2.6% instead of 0.7%)."""

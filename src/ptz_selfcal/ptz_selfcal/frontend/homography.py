@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from ptz_selfcal.core.geometry import apply_homography
+from ptz_selfcal.camera.geometry import apply_homography
 
 Array = NDArray[np.float64]
 

@@ -65,8 +65,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline
 from scipy.optimize import lsq_linear
 
-from ptz_selfcal.core.atomic_file import atomic_write_text
-from ptz_selfcal.core.geometry import intrinsic_matrix
+from ptz_selfcal.camera.geometry import intrinsic_matrix
+from ptz_selfcal.persist.atomic_file import atomic_write_text
 
 Array = NDArray[np.float64]
 

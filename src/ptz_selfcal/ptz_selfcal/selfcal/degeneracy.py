@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from ptz_selfcal.core.intrinsics import IntrinsicsModel, ParamMode, image_centre
+from ptz_selfcal.camera.intrinsics import IntrinsicsModel, ParamMode, image_centre
 
 Array = NDArray[np.float64]
 

@@ -77,7 +77,7 @@ def division_distort(points_u: ArrayLike, lam: float, centre: ArrayLike, f: floa
 def distort_points(points_u: ArrayLike, K: ArrayLike, lam: float) -> Array:
     """Distort (N, 2) undistorted pixels with the division model on normalised coordinates K^-1 x
     about K's principal point (= division_distort with f = fx for square pixels and zero skew; the
-    projection of core/bundle.py's distortion=True adjustment)."""
+    projection of bundle/adjust.py's distortion=True adjustment)."""
     K = np.asarray(K, dtype=float).reshape(3, 3)
     pts = _as_points(points_u)
     n = np.linalg.solve(K, np.column_stack([pts, np.ones(len(pts))]).T)[:2].T

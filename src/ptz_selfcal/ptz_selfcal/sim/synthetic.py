@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.core.geometry import intrinsic_matrix, ptz_rotation, reference_homographies
-from ptz_selfcal.core.homography import estimate_homography
-from ptz_selfcal.core.intrinsics import image_centre
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation, reference_homographies
+from ptz_selfcal.camera.intrinsics import image_centre
+from ptz_selfcal.frontend.homography import estimate_homography
 
 Array = NDArray[np.float64]
 

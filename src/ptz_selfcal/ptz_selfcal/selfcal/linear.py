@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.degeneracy import analyse_motion
-from ptz_selfcal.core.intrinsics import (
+from ptz_selfcal.camera.intrinsics import (
     SelfCalibrationError,
     SelfCalibrationResult,
     image_centre,
     rotations_from_homographies,
 )
+from ptz_selfcal.selfcal.degeneracy import analyse_motion
 
 Array = NDArray[np.float64]
 

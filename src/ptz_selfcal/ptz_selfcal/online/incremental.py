@@ -27,7 +27,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.degeneracy import (
+from ptz_selfcal.camera.geometry import intrinsic_matrix, normalise_homography, rotation_from_homography
+from ptz_selfcal.camera.intrinsics import (
+    IntrinsicsModel,
+    ParamMode,
+    SelfCalibrationError,
+    SelfCalibrationResult,
+    image_centre,
+    rotations_from_homographies,
+)
+from ptz_selfcal.selfcal.degeneracy import (
     STATUS_INSUFFICIENT_ROTATION,
     STATUS_NEAR_AMBIGUOUS,
     STATUS_OK,
@@ -36,16 +45,7 @@ from ptz_selfcal.core.degeneracy import (
     rotation_vectors,
     single_axis_is_degenerate,
 )
-from ptz_selfcal.core.geometry import intrinsic_matrix, normalise_homography, rotation_from_homography
-from ptz_selfcal.core.intrinsics import (
-    IntrinsicsModel,
-    ParamMode,
-    SelfCalibrationError,
-    SelfCalibrationResult,
-    image_centre,
-    rotations_from_homographies,
-)
-from ptz_selfcal.core.lm_selfcal import lm_selfcalibration
+from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
 Array = NDArray[np.float64]
 

@@ -21,7 +21,7 @@ are predicted over a range of focal lengths as well. A product of raw homographi
 set is useless as a prediction (their projective terms are the least constrained part of a narrow
 overlap).
 
-Each successful match (ratio test, MAGSAC + LM homography from core.features) is a KeyframeLink; every
+Each successful match (ratio test, MAGSAC + LM homography from frontend.features) is a KeyframeLink; every
 still is a keyframe. Same TrackResult interface as HomographyTracker, ids are still indices.
 """
 
@@ -36,11 +36,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.core.features import Descriptors, robust_homography, usac_params
-from ptz_selfcal.core.geometry import apply_homography
-from ptz_selfcal.core.intrinsics import image_centre
-from ptz_selfcal.core.linear_selfcal import normalise_homographies, normalising_transform
-from ptz_selfcal.core.tracker import KeyframeLink, TrackingState, TrackResult
+from ptz_selfcal.camera.geometry import apply_homography
+from ptz_selfcal.camera.intrinsics import image_centre
+from ptz_selfcal.frontend.features import Descriptors, robust_homography, usac_params
+from ptz_selfcal.frontend.tracker import KeyframeLink, TrackingState, TrackResult
+from ptz_selfcal.selfcal.linear import normalise_homographies, normalising_transform
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]

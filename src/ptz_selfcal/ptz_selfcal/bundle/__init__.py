@@ -1,0 +1,1 @@
+"""Bundle adjustment over keyframes (section 5): observations, residuals, Schur solve, covariance."""

@@ -1,0 +1,1 @@
+"""Camera model: geometry of a rotating camera, intrinsics and the radial distortion models."""

@@ -1,1 +1,0 @@
-"""Pure algorithms: numpy, scipy and OpenCV only; no rclpy and no message types."""

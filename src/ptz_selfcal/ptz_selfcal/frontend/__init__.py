@@ -1,0 +1,1 @@
+"""Image front end: features, robust homographies, the keyframe tracker, stills and encoder interpolation."""

@@ -1,0 +1,1 @@
+"""The online calibrator: bounded keyframe set, keyframe solver, gates, status, the session."""

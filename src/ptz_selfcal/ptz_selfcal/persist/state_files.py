@@ -1,0 +1,36 @@
+"""State files of the calibrator: YAML mappings read with a clear error when unusable."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+STATE_VERSION = 1
+STATE_FILE = "calibration_state.yaml"
+ZOOM_MODEL_FILE = "zoom_model.yaml"
+
+
+class StateFileError(Exception):
+    """A state file that exists but cannot be used (corrupt, wrong version, wrong camera)."""
+
+
+def load_yaml_file(path: str | os.PathLike[str]) -> dict | None:
+    """The mapping in a YAML file; None when the file does not exist; StateFileError when unusable."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        first = (str(exc).splitlines() or [""])[0]
+        raise StateFileError(f"{path}: unreadable ({type(exc).__name__}: {first})") from exc
+    if not isinstance(data, dict):
+        raise StateFileError(f"{path}: not a YAML mapping")
+    return data

@@ -1,0 +1,1 @@
+"""Self-calibration from homographies: linear IAC (section 3.3.2), LM on eq. 22 (3.3.1), degeneracy (6)."""

@@ -1,0 +1,1 @@
+"""Simulation and evaluation: rendering, synthetic data, metrics (not used by the nodes)."""
