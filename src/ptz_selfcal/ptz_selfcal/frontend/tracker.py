@@ -36,7 +36,6 @@ import math
 import zlib
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 from typing import Any
 
 import cv2
@@ -56,6 +55,7 @@ from ptz_selfcal.frontend.features import (
     track_klt,
     usac_params,
 )
+from ptz_selfcal.status import TrackingState
 
 Array = NDArray[np.float64]
 Points = NDArray[np.float32]
@@ -64,14 +64,6 @@ _LOG = logging.getLogger(__name__)
 
 MAP_FORMAT = "ptz_selfcal.tracker_map"
 MAP_VERSION = 2
-
-
-class TrackingState(StrEnum):
-    TRACKING = "TRACKING"
-    NEW_KEYFRAME = "NEW_KEYFRAME"
-    RELOCALISED = "RELOCALISED"
-    TRACKING_LOST = "TRACKING_LOST"
-    TEXTURELESS = "TEXTURELESS"
 
 
 # The string fields of TrackerConfig and the values each accepts.

@@ -5,6 +5,9 @@ data) or sensor_msgs/CompressedImage (format, data): rclpy messages and rosbags 
 Every way an input can be unusable raises FrameError with a short `kind` (the diagnostics counter name)
 and a one-line explanation; nothing here logs or crashes.
 
+The status vocabularies of ptz_selfcal.status are mapped to the message integers here and nowhere else
+(FrameCalibration.status, HomographyStamped.state), both ways.
+
 Working resolution: an integer downscale factor k, scale s = 1/k, so that both axes scale exactly and the
 pixel-centre convention x_work = (x_full + 0.5) * s - 0.5 of camera/geometry.py holds (INTER_AREA averaging
 of k x k blocks; a full image whose size is not a multiple of k loses its last < k columns/rows, which
@@ -15,12 +18,17 @@ DCT scaling averages the same blocks).
 from __future__ import annotations
 
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from ptz_selfcal.status import CalibrationStatus, TrackingState
+from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped
 
 Mono8 = NDArray[np.uint8]
 
@@ -42,6 +50,35 @@ _JPEG_REDUCED = {
     4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
     8: cv2.IMREAD_REDUCED_GRAYSCALE_8,
 }
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Status vocabularies <-> message constants
+# ---------------------------------------------------------------------------------------------------------
+STATUS_TO_MSG: Mapping[CalibrationStatus, int] = MappingProxyType(
+    {
+        CalibrationStatus.INITIALISING: FrameCalibration.INITIALISING,
+        CalibrationStatus.CALIBRATING: FrameCalibration.CALIBRATING,
+        CalibrationStatus.CONVERGED: FrameCalibration.CONVERGED,
+        CalibrationStatus.DEGENERATE_MOTION: FrameCalibration.DEGENERATE_MOTION,
+        CalibrationStatus.TRACKING_LOST: FrameCalibration.TRACKING_LOST,
+        CalibrationStatus.PREDICTED_FROM_ZOOM: FrameCalibration.PREDICTED_FROM_ZOOM,
+    }
+)
+MSG_TO_STATUS: Mapping[int, CalibrationStatus] = MappingProxyType({v: k for k, v in STATUS_TO_MSG.items()})
+
+TRACKING_STATE_TO_MSG: Mapping[TrackingState, int] = MappingProxyType(
+    {
+        TrackingState.TRACKING: HomographyStamped.TRACKING,
+        TrackingState.NEW_KEYFRAME: HomographyStamped.NEW_KEYFRAME,
+        TrackingState.RELOCALISED: HomographyStamped.RELOCALISED,
+        TrackingState.TRACKING_LOST: HomographyStamped.TRACKING_LOST,
+        TrackingState.TEXTURELESS: HomographyStamped.TEXTURELESS,
+    }
+)
+MSG_TO_TRACKING_STATE: Mapping[int, TrackingState] = MappingProxyType(
+    {v: k for k, v in TRACKING_STATE_TO_MSG.items()}
+)
 
 
 class FrameError(ValueError):
