@@ -347,49 +347,6 @@ def test_focal_lower_bound_and_errors() -> None:
     assert np.all(result.focal >= 1500.0)
 
 
-def _keyframes_with_matches(seq, frames):
-    """Keyframe records (online.incremental.Keyframe) for `frames` (frames[0] is the reference) with
-    matches to the previous keyframe and to the reference."""
-    from ptz_selfcal.online.incremental import Keyframe
-
-    records = []
-    for k, j in enumerate(frames[1:], start=1):
-        matches = []
-        for other_pos in {0, k - 1}:
-            i = frames[other_pos]
-            _, ii, ij = np.intersect1d(seq.point_ids[i], seq.point_ids[j], return_indices=True)
-            other_id = bundle.REFERENCE if other_pos == 0 else f"kf{i}"
-            matches.append((other_id, seq.pixels[i][ii], seq.pixels[j][ij]))
-        records.append(Keyframe(f"kf{j}", seq.H[j] / np.cbrt(np.linalg.det(seq.H[j])), matches=matches))
-    return records
-
-
-def test_keyframe_solver_refines_lm_with_bundle_adjustment() -> None:
-    frames = [0, 5, 10, 15, 20, 25, 29]
-    seq = paper_sequence("A", 0.0, seed=25)
-    keyframes = _keyframes_with_matches(seq, frames)
-    H = np.concatenate([np.eye(3)[None], np.array([kf.H for kf in keyframes])])
-    solver = bundle.make_bundle_solver()
-    result = solver(H, seq.image_size, SQUARE_CONSTANT_PP, None, keyframes, 200)
-    assert result.method == "mle" and result.ok
-    np.testing.assert_allclose(result.focal, seq.K[frames, 1, 1], rtol=1e-6)
-    # Matches with a keyframe that left the set are skipped; without matches the LM result is returned.
-    assert len(bundle.keyframe_observations(keyframes[2:]).frame_idx) > 0
-    bare = [type(kf)(kf.keyframe_id, kf.H) for kf in keyframes]
-    fallback = solver(H, seq.image_size, SQUARE_CONSTANT_PP, None, bare, 200)
-    assert fallback.method.startswith("lm")
-    # With noise and a pp prior: MAP over the keyframes, residual at the noise level.
-    noisy = paper_sequence("A", 0.5, seed=25)
-    keyframes = _keyframes_with_matches(noisy, frames)
-    H = np.concatenate([np.eye(3)[None], np.array([kf.H for kf in keyframes])])
-    map_solver = bundle.make_bundle_solver(pp_prior=default_pp_prior(noisy.image_size), noise_sigma=0.5)
-    result = map_solver(H, noisy.image_size, SQUARE_CONSTANT_PP, None, keyframes, 200)
-    assert result.method == "map"
-    # rms per point sigma sqrt(2) sqrt(dof / 2N), and dof / 2N ~ 1/2 for two-view rays: ~ sigma.
-    assert 0.45 < result.residual < 0.55
-    assert np.sqrt(np.mean(((result.focal - noisy.K[frames, 1, 1]) / noisy.K[frames, 1, 1]) ** 2)) < 0.01
-
-
 # ---------------------------------------------------------------------------------------------------
 # Radial distortion estimated in the adjustment (distortion=True): division model about the pp
 # ---------------------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ zoom range.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from itertools import pairwise
 from typing import Any
@@ -57,7 +57,6 @@ from ptz_selfcal.camera.intrinsics import (
     values_from_matrices,
 )
 from ptz_selfcal.selfcal.degeneracy import analyse_motion, single_axis_is_degenerate
-from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -1089,73 +1088,3 @@ def _levenberg_marquardt(
 def default_pp_prior(image_size: tuple[int, int], sigma: float = 10.0) -> tuple[Array, Array]:
     """The paper's prior of eq. 27: the principal point near the image centre, sigma pixels each way."""
     return np.array(image_centre(image_size)), np.array([sigma, sigma])
-
-
-# ---------------------------------------------------------------------------------------------------
-# Keyframe solver for the incremental calibrator (online/incremental.py's solver seam)
-# ---------------------------------------------------------------------------------------------------
-
-REFERENCE = None  # id naming the calibration's reference frame (frame 0) in keyframe matches
-
-
-def keyframe_observations(keyframes: Sequence[Any]) -> BundleObservations:
-    """Pair observations from keyframe records (frame 0 = the reference, keyframe k = frame k + 1).
-
-    Each record's `matches` is None or a sequence of (other_id, xy_other (k, 2), xy_self (k, 2)):
-    inlier matches between that keyframe and another keyframe (by keyframe_id) or the reference
-    frame (other_id = REFERENCE). Matches with keyframes no longer in the set are skipped.
-    """
-    frame_of = {kf.keyframe_id: k + 1 for k, kf in enumerate(keyframes)}
-    pairs = []
-    for k, kf in enumerate(keyframes):
-        for other_id, xy_other, xy_self in kf.matches or ():
-            other = 0 if other_id is REFERENCE else frame_of.get(other_id)
-            if other is not None and other != k + 1:
-                pairs.append((other, k + 1, xy_other, xy_self))
-    return pair_observations(pairs)
-
-
-def make_bundle_solver(
-    *, pp_prior: tuple[ArrayLike, ArrayLike] | None = None, noise_sigma: float = 1.0, max_iterations: int = 20
-) -> Callable[..., SelfCalibrationResult]:
-    """A solver for `IncrementalCalibrator(solver=...)`: LM on eq. 22, then bundle adjustment.
-
-    The LM solution over the keyframe homographies starts the bundle adjustment (section 5.1's
-    recipe) over the keyframes' matches (`keyframe_observations`). With pp_prior the adjustment is
-    the MAP of eq. 27 with a per-frame principal point (for a model whose principal point is not
-    KNOWN), otherwise the MLE of eq. 26 under the calibrator's model. When there are no matches,
-    a frame has none, or the adjustment is not ok while LM was, the LM result is returned.
-    """
-
-    def solve(
-        H: Array,
-        image_size: tuple[int, int],
-        model: IntrinsicsModel,
-        K_init: Array | None,
-        keyframes: list[Any],
-        max_nfev: int,
-    ) -> SelfCalibrationResult:
-        start = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max_nfev)
-        obs = keyframe_observations(keyframes)
-        if len(obs.frame_idx) == 0:
-            return start
-        ba_model = model
-        if pp_prior is not None and model.principal_point is not ParamMode.KNOWN:
-            ba_model = replace(model, principal_point=ParamMode.VARYING)
-        try:
-            result = bundle_adjust(
-                obs,
-                start.K,
-                start.R,
-                image_size,
-                ba_model,
-                pp_prior=pp_prior,
-                noise_sigma=noise_sigma,
-                max_iterations=max_iterations,
-            )
-        except SelfCalibrationError as error:
-            logger.info("bundle adjustment skipped: %s", error)
-            return start
-        return result if result.ok or not start.ok else start
-
-    return solve
