@@ -50,7 +50,9 @@ from ptz_selfcal.camera.intrinsics import IntrinsicsModel
 from ptz_selfcal.frontend.homography import estimate_homography
 from ptz_selfcal.lens.correction import LensCorrection
 from ptz_selfcal.lens.estimation import undistorted_homography
+from ptz_selfcal.nodes.conversions import MSG_TO_STATUS, MSG_TO_TRACKING_STATE
 from ptz_selfcal.selfcal.lm import lm_selfcalibration
+from ptz_selfcal.status import HOMOGRAPHY_STATES, TrackingState
 from ptz_selfcal.tools.bagio import BagReader, deserialize
 from ptz_selfcal.zoom.model import ZoomModel
 
@@ -100,7 +102,8 @@ def read_run(bag: Path) -> dict:
             msg = deserialize(m.raw, m.msgtype)
             if m.topic.endswith("homography"):
                 out["size"] = (int(msg.image_width), int(msg.image_height))
-                if msg.state == 1:  # NEW_KEYFRAME: the keyframe's tracked H reference -> keyframe
+                if MSG_TO_TRACKING_STATE.get(msg.state) == TrackingState.NEW_KEYFRAME:
+                    # the keyframe's tracked H reference -> keyframe
                     kid = int(msg.keyframe_id)
                     out["H"][kid] = np.asarray(msg.h, dtype=float).reshape(3, 3)
                     out["stamp"][kid] = stamp_ns(msg.header.stamp)
@@ -287,7 +290,6 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
                 keyframes.setdefault(stamp_ns(msg.header.stamp), []).append(msg)
             else:
                 gt[stamp_ns(msg.header.stamp)] = np.asarray(msg.k, dtype=float).reshape(3, 3)
-    states = {0: "TRACKING", 1: "NEW_KEYFRAME", 2: "RELOCALISED"}
     original = lens_correction.LensCorrection.frame_homography
 
     def unrefined(self, H_raw, keyframe_id, f_frame=None):  # type: ignore[no-untyped-def]
@@ -318,7 +320,8 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
             for msg in homographies:
                 st = stamp_ns(msg.header.stamp)
                 W, H = int(msg.image_width), int(msg.image_height)
-                state = states.get(int(msg.state), "TRACKING_LOST")
+                state = MSG_TO_TRACKING_STATE.get(int(msg.state), TrackingState.TRACKING_LOST)
+                state = state if state in HOMOGRAPHY_STATES else TrackingState.TRACKING_LOST
                 h, state = hook.frame(
                     np.asarray(msg.h, dtype=float).reshape(3, 3), state, int(msg.keyframe_id), "r", W, H
                 )
@@ -466,11 +469,9 @@ def zoom_model(bag: Path, work: Path, report_on: dict, state_dir: Path, lines: l
     first = min(rr["frames"], key=lambda fc: stamp_ns(fc.header.stamp))
     g = rr["gt"][stamp_ns(first.header.stamp)]
     err = abs(first.fx / g.k[0] - 1.0) * 100
-    status = ["INITIALISING", "CALIBRATING", "CONVERGED", "DEGENERATE_MOTION", "TRACKING_LOST"]
-    status += ["PREDICTED_FROM_ZOOM"]
     lines.append(
         f"   restart on the saved state: first frame f error {err:.3f}% (status "
-        f"{status[first.status] if first.status < len(status) else first.status}; target <= 1%: "
+        f"{MSG_TO_STATUS.get(first.status, first.status)}; target <= 1%: "
         f"{'yes' if err <= 1.0 else 'NO'}); whole restarted run focal median "
         f"{figures(restart)[0]:.3f}%, distortion median {figures(restart)[3]:.2f} px"
     )

@@ -61,6 +61,7 @@ from ptz_selfcal.frontend.tracker import (
     HomographyTracker,
 )
 from ptz_selfcal.sim import metrics
+from ptz_selfcal.status import HOMOGRAPHY_STATES, CalibrationStatus
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -565,17 +566,18 @@ def run_session(
                 session.add_keyframe_matches(
                     link.target_id, link.source_id, link.target_points, link.source_points, link.H
                 )
-        state = result.state.value if hasattr(result.state, "value") else str(result.state)
+        state = result.state.value
         kid = -1 if result.keyframe_id is None else int(result.keyframe_id)
         ref = "" if result.reference_id is None else str(result.reference_id)
         H = result.H_ref
-        if lens is not None and state in ("TRACKING", "NEW_KEYFRAME", "RELOCALISED"):
+        if lens is not None and state in HOMOGRAPHY_STATES:
             H, state = lens.frame(H, state, kid, ref, w, h)
         out = session.process(FrameInput(i * dt, H, state, w, h, kid, ref))
         last_message[:] = [out.message]
         if out.source == "calibration" and out.R is not None:
             published[i] = (out.K, out.R, out.status)
-        statuses[out.status] = statuses.get(out.status, 0) + 1
+        status = str(out.status)  # a plain name: the note prints this dict
+        statuses[status] = statuses.get(status, 0) + 1
         session.step(SESSION_BUDGET_S)
         if lens is not None:
             lens.work(session)
@@ -628,11 +630,15 @@ def published_row(name: str, seq: Sequence, published: dict, ms: tuple[float, fl
     """The K published as CONVERGED for each evaluation frame after the warm-up (DESIGN.md section 7)."""
     warm = metrics.warmup_frames(len(seq.frames))
     idx = np.array(
-        [i for i in seq.eval_idx if i in published and published[i][2] == "CONVERGED" and i >= warm],
+        [
+            i
+            for i in seq.eval_idx
+            if i in published and published[i][2] == CalibrationStatus.CONVERGED and i >= warm
+        ],
         dtype=np.intp,
     )
     note = f"as published CONVERGED, frames >= {warm}" + ("" if len(idx) else ": none")
-    others = [i for i in published if i >= warm and published[i][2] != "CONVERGED"]
+    others = [i for i in published if i >= warm and published[i][2] != CalibrationStatus.CONVERGED]
     if seq.f_reference is not None and others:  # what the statuses kept a user from taking
         err = [100.0 * abs(published[i][0][0, 0] / seq.f_reference - 1.0) for i in others]
         note += f"; frames published as not converged: f median {np.median(err):.1f}% off AutoStitch"

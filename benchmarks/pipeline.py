@@ -30,6 +30,7 @@ import numpy as np
 
 from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation
 from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
+from ptz_selfcal.status import CALIBRATED, TrackingState
 from ptz_selfcal.tools import evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -173,7 +174,7 @@ def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
         frame = FrameInput(
             stamp=j / 30.0,
             H=H,
-            tracking_state="NEW_KEYFRAME" if new_kf else "TRACKING",
+            tracking_state=TrackingState.NEW_KEYFRAME if new_kf else TrackingState.TRACKING,
             width=width,
             height=height,
             keyframe_id=kid,
@@ -200,7 +201,7 @@ def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
             session.step(0.5)
         t2 = time.thread_time()
         frame_t[j], total_t[j] = t1 - t0, t2 - t0
-        errors.append(abs(out.K[0, 0] / f - 1.0) if out.status in ("CALIBRATING", "CONVERGED") else math.nan)
+        errors.append(abs(out.K[0, 0] / f - 1.0) if out.status in CALIBRATED else math.nan)
         if j + 1 in (2000, n):
             rss[j + 1] = rss_mb()
     elapsed = time.perf_counter() - start_all

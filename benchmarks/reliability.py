@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ptz_selfcal.status import CALIBRATED, TrackingState
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "tests" / "reliability")]
 
@@ -483,8 +485,10 @@ class Blocks:
                 f"{pct(lat, 95):>4} {pct(lat, 100):>4} | {pct(ingest, 95):>6} {pct(track, 95):>5} "
                 f"{pct(calib, 95):>5} | "
                 + " ".join(f"{use[n]:>{w}.0f}" for n, w in zip([*names, "feeder"], (6, 5, 5, 5)))
-                + f" {others:>6.0f} {busy / os.cpu_count():>5.0f} | {delta('state_NEW_KEYFRAME'):>5} "
-                f"{delta('state_RELOCALISED'):>5} {delta('state_TRACKING_LOST'):>4} "
+                + f" {others:>6.0f} {busy / os.cpu_count():>5.0f} | "
+                f"{delta(f'state_{TrackingState.NEW_KEYFRAME}'):>5} "
+                f"{delta(f'state_{TrackingState.RELOCALISED}'):>5} "
+                f"{delta(f'state_{TrackingState.TRACKING_LOST}'):>4} "
                 f"{delta('keyframe_changes'):>5} "
                 f"{delta('frames_dropped'):>5} {t_new.get('map_keyframes', '-'):>3} "
                 f"{t_new.get('track_ms_mean', '-'):>6}"
@@ -576,7 +580,7 @@ def core_soak(lines: list[str], core_frames: int) -> None:
         "",
         f"4a. Soak, calibrator core (CalibratorSession.process + worker steps inline, exact homographies "
         f"of a patrolling camera, period 600 frames): {r['frames']} frames in {r['wall_s']:.0f} s",
-        f"   frames calibrated {r['statuses'].get('CONVERGED', 0) + r['statuses'].get('CALIBRATING', 0)} "
+        f"   frames calibrated {sum(r['statuses'].get(s, 0) for s in CALIBRATED)} "
         f"({r['statuses']}), median focal error {100 * r['median_error']:.4f} %, {r['solves']} solves",
         f"   CPU ms/frame after warm-up (frames 2k-12k) {r['warm_cpu_ms']:.3f}, at the end (last 10k) "
         f"{r['end_cpu_ms']:.3f}: ratio {r['end_cpu_ms'] / r['warm_cpu_ms']:.3f} (target <= 1.1); best "

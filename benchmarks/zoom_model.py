@@ -45,6 +45,7 @@ import yaml
 
 from ptz_selfcal.camera.distortion import max_distortion_difference
 from ptz_selfcal.frontend.encoders import EncoderConfig, EncoderInterpolator
+from ptz_selfcal.nodes.conversions import MSG_TO_STATUS
 from ptz_selfcal.sim.render import ZoomEncoder
 from ptz_selfcal.tools.bagio import BagReader, deserialize
 from ptz_selfcal.zoom.model import ZoomModel, ZoomRate
@@ -52,8 +53,6 @@ from ptz_selfcal.zoom.model import ZoomModel, ZoomRate
 ROOT = Path(__file__).resolve().parents[1]
 PANORAMA = ROOT / "bags" / "source" / "examplepano.jpg"
 CONFIG = ROOT / "src" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"
-STATUS = ["INITIALISING", "CALIBRATING", "CONVERGED", "DEGENERATE_MOTION", "TRACKING_LOST"]
-STATUS += ["PREDICTED_FROM_ZOOM"]
 
 
 def cli_main(argv: list[str]) -> int:
@@ -74,7 +73,7 @@ def _keep(key: dict[str, float], name: str, value: float) -> float:
 
 
 def status_name(code: int) -> str:
-    return STATUS[code] if 0 <= code < len(STATUS) else str(code)
+    return str(MSG_TO_STATUS.get(code, code))
 
 
 def stamp_ns(stamp: object) -> int:

@@ -22,6 +22,8 @@ import pytest
 from conftest import PANORAMAS, node_command
 
 from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.nodes.conversions import MSG_TO_STATUS
+from ptz_selfcal.status import CALIBRATED, CalibrationStatus, TrackingState
 
 NODE_MODULES = {
     "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
@@ -30,15 +32,10 @@ NODE_MODULES = {
 }
 T0 = 1_700_000_000.0  # first stamp of every rendered sequence (s)
 
-# statuses of FrameCalibration by value
-STATUS_NAMES = {
-    0: "INITIALISING",
-    1: "CALIBRATING",
-    2: "CONVERGED",
-    3: "DEGENERATE_MOTION",
-    4: "TRACKING_LOST",
-    5: "PREDICTED_FROM_ZOOM",
-}
+
+def status_name(code: int) -> str:
+    """The name of a FrameCalibration.status value, as a plain str: results are printed and compared."""
+    return MSG_TO_STATUS[code].value
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -353,8 +350,6 @@ def percentile(values: Sequence[float], q: float) -> float:
 
 # ---------------------------------------------------------------------------------------------------------
 # scenarios shared by the tests (CI size) and benchmarks/reliability.py (full size)
-CALIBRATED = {"CALIBRATING", "CONVERGED"}
-LOSS_STATUSES = {"PREDICTED_FROM_ZOOM", "TRACKING_LOST"}
 
 
 @dataclass
@@ -409,7 +404,7 @@ class LockStep:
         return int(d.get("last_frame_stamp_ns", -1)) >= stamp_ns and d.get("reoptimise_pending") == "0"
 
     def status(self, sent: Sent) -> str:
-        return STATUS_NAMES[self.feeder.frames[sent.stamp_ns].status]
+        return status_name(self.feeder.frames[sent.stamp_ns].status)
 
     def error(self, sent: Sent) -> float:
         return focal_error(self.feeder.infos[sent.stamp_ns][0], sent.view)
@@ -630,8 +625,9 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
         first = j < period
         new_kf = first and c % keyframe_every == 0
         kid = c - c % keyframe_every
+        state = TrackingState.NEW_KEYFRAME if new_kf else TrackingState.TRACKING
         frame = FrameInput(
-            stamp=j / 30.0, H=Hs[c], tracking_state="NEW_KEYFRAME" if new_kf else "TRACKING", width=width,
+            stamp=j / 30.0, H=Hs[c], tracking_state=state, width=width,
             height=height, keyframe_id=kid, reference_id="ref", zoom=float(f[c]),
         )  # fmt: skip
         t0 = time.thread_time()
@@ -646,7 +642,8 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
         if c % keyframe_every == 0:
             session.step(0.5 if first else 0.05)
         cpu[j] = time.thread_time() - t0
-        statuses[out.status] = statuses.get(out.status, 0) + 1
+        name = str(out.status)  # a plain name: the benchmark prints this dict
+        statuses[name] = statuses.get(name, 0) + 1
         if out.status in CALIBRATED:
             errors[j] = abs(out.K[0, 0] / f[c] - 1.0)
         if (j + 1) % block == 0:
@@ -725,9 +722,9 @@ def graph_soak(feeder: Feeder, pids: dict[str, int], n: int, width: int, height:
         "latency_blocks": lat_blocks,
         "statuses": {
             name: sum(
-                1 for s in stamps if s in feeder.frames and STATUS_NAMES[feeder.frames[s].status] == name
+                1 for s in stamps if s in feeder.frames and status_name(feeder.frames[s].status) == name
             )
-            for name in STATUS_NAMES.values()
+            for name in map(str, CalibrationStatus)
         },
     }
 

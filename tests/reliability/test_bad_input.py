@@ -25,6 +25,7 @@ import pytest
 import reliability_harness as rh
 from conftest import REPO, cli_command, node_command
 
+from ptz_selfcal.status import CALIBRATED
 from ptz_selfcal.tools.bagio import BagReader, BagWriter
 
 ROS_DOMAIN_ID = 170
@@ -55,8 +56,8 @@ def test_graph_survives_the_catalogue_and_calibrates_every_good_frame(ros_env, s
         assert not far.encoders.valid
         # calibration goes on: the last frames are calibrated and accurate
         last = [rh.t_ns(t_of(i)) for i in range(50, 60)]
-        statuses = {rh.STATUS_NAMES[feeder.frames[ns].status] for ns in last}
-        assert statuses <= rh.CALIBRATED, statuses
+        statuses = {rh.status_name(feeder.frames[ns].status) for ns in last}
+        assert statuses <= CALIBRATED, statuses
         errors = [rh.focal_error(feeder.infos[ns][0], views[50 + j]) for j, ns in enumerate(last)]
         assert max(errors) < 0.01, errors
 

@@ -17,6 +17,8 @@ import reliability_harness as rh
 import yaml
 from conftest import cli_command
 
+from ptz_selfcal.status import CALIBRATED, CalibrationStatus
+
 ROS_DOMAIN_ID = 185
 VICTIMS = ("calibrator", "homography_tracker", "frame_ingest")
 W, H = 640, 360
@@ -103,9 +105,9 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
         # on it and publish INITIALISING frames with K from the restored zoom model, which must be as good.
         assert not worse, (worse, statuses, f"median focal error before {r['before']}, after {r['after']}")
         if victim == "homography_tracker":
-            assert set(statuses) <= rh.CALIBRATED | {"INITIALISING"}, statuses
+            assert set(statuses) <= CALIBRATED | {CalibrationStatus.INITIALISING}, statuses
         else:
-            assert set(statuses) <= rh.CALIBRATED, statuses
+            assert set(statuses) <= CALIBRATED, statuses
         assert launch.alive()
     finally:
         watcher.stop_event.set()

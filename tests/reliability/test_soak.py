@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import reliability_harness as rh
 
+from ptz_selfcal.status import CalibrationStatus
+
 ROS_DOMAIN_ID = 181
 CORE_FRAMES = 30_000
 GRAPH_FRAMES = 3_000
@@ -31,7 +33,7 @@ def test_core_memory_flat_and_still_calibrating():
     # cannot tell from growth. Memory and correctness over the run are deterministic and asserted.
     assert r["end_rss"] <= 1.1 * r["warm_rss"], r["rss_blocks"]
     # and it still calibrates: almost every frame converged, focal error tiny
-    assert r["statuses"].get("CONVERGED", 0) > 0.95 * CORE_FRAMES
+    assert r["statuses"].get(CalibrationStatus.CONVERGED, 0) > 0.95 * CORE_FRAMES
     assert r["median_error"] < 2e-3
 
 
@@ -54,7 +56,7 @@ def test_graph_memory_flat_and_every_frame_calibrated(ros_env, start_process):
             # failed a 10 % bound once without any growth (5.0 -> 8.1 -> 6.0 ms in successive blocks).
             assert rss[-1] <= 1.1 * rss[1], (name, rss)
             print(f"  {name}: CPU ms/frame warm-up {max(cpu[1:3]):.2f}, end {min(cpu[-2:]):.2f}")
-        assert r["statuses"]["CONVERGED"] > 0.8 * GRAPH_FRAMES
+        assert r["statuses"][CalibrationStatus.CONVERGED] > 0.8 * GRAPH_FRAMES
         for name, proc in procs.items():
             assert proc.alive(), f"{name} died:\n{proc.output()[-3000:]}"
     finally:

@@ -13,6 +13,8 @@ from __future__ import annotations
 import pytest
 import reliability_harness as rh
 
+from ptz_selfcal.status import CALIBRATED, LOSS_STATUSES, CalibrationStatus
+
 ROS_DOMAIN_ID = 175
 W, H = 640, 360
 
@@ -30,7 +32,7 @@ def test_fast_zooming_preset_recall_does_not_corrupt_the_calibration(ros_env, st
         assert all(p.alive() for p in procs.values())
         # while moving: K from the zoom model or a good homography, never a wildly wrong one
         assert max(r["moving_errors"]) < 0.05, [round(e, 3) for e in r["moving_errors"]]
-        assert set(r["after_statuses"][-16:]) <= rh.CALIBRATED, r["after_statuses"]
+        assert set(r["after_statuses"][-16:]) <= CALIBRATED, r["after_statuses"]
         assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
     finally:
         feeder.close()
@@ -89,15 +91,15 @@ def test_camera_info_for_every_frame_and_nodes_alive(loss_results):
     assert all(loss_results["_alive"].values()), loss_results["_alive"]
     calibrator = loss_results["_diagnostics"]["calibrator"]
     assert int(calibrator["camera_info_out"]) == len(stamps)
-    assert int(calibrator["status_PREDICTED_FROM_ZOOM"]) > 0
+    assert int(calibrator[f"status_{CalibrationStatus.PREDICTED_FROM_ZOOM}"]) > 0
 
 
 @pytest.mark.parametrize("disturbance", ["black", "blur", "scene_cut"])
 def test_lost_view_predicted_from_zoom_then_relocalised_uncorrupted(loss_results, disturbance):
     r = loss_results[disturbance]
     # while the view is gone the K comes from the zoom model (learned over the warm-up's zoom range)
-    assert set(r["statuses"]) <= rh.LOSS_STATUSES, r["statuses"]
-    assert "PREDICTED_FROM_ZOOM" in r["statuses"]
+    assert set(r["statuses"]) <= LOSS_STATUSES, r["statuses"]
+    assert CalibrationStatus.PREDICTED_FROM_ZOOM in r["statuses"]
     assert max(r["errors"]) < 0.05, r["errors"]
     # relocalised within the first frames of the returning view, and the calibration is not corrupted
     assert r["recovery_frames"] is not None and r["recovery_frames"] <= 3, r["after_statuses"]
@@ -107,8 +109,8 @@ def test_lost_view_predicted_from_zoom_then_relocalised_uncorrupted(loss_results
 def test_preset_move_predicted_from_zoom_then_relocalised_uncorrupted(loss_results):
     r = loss_results["preset_90deg"]
     # motion-blurred moves and the unseen preset view: no homography, K from the zoom model
-    assert set(r["statuses"]) <= rh.LOSS_STATUSES | rh.CALIBRATED, r["statuses"]
-    assert "PREDICTED_FROM_ZOOM" in r["statuses"]
+    assert set(r["statuses"]) <= LOSS_STATUSES | CALIBRATED, r["statuses"]
+    assert CalibrationStatus.PREDICTED_FROM_ZOOM in r["statuses"]
     assert max(r["errors"]) < 0.05, r["errors"]
     assert r["recovery_frames"] is not None and r["recovery_frames"] <= 3, r["after_statuses"]
     assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])
@@ -120,5 +122,5 @@ def test_undisturbed_pass_over_the_same_views_does_not_drift(loss_results):
     frames' calibration stay as they were (issue 7: they drifted pass after pass before)."""
     r = loss_results["none"]
     assert r["frames"] == 0 and r["recovery_frames"] == 0, r["after_statuses"]
-    assert set(r["after_statuses"]) <= rh.CALIBRATED, r["after_statuses"]
+    assert set(r["after_statuses"]) <= CALIBRATED, r["after_statuses"]
     assert r["after"] <= 1.1 * r["before"], (r["before"], r["after"])

@@ -28,13 +28,15 @@ import numpy as np
 from ptz_selfcal import topics
 from ptz_selfcal.camera.distortion import DIVISION, PLUMB_BOB
 from ptz_selfcal.camera.geometry import matrix_from_quaternion
+from ptz_selfcal.nodes.conversions import STATUS_TO_MSG
 from ptz_selfcal.sim import metrics
+from ptz_selfcal.status import CALIBRATED, CalibrationStatus
 from ptz_selfcal.tools.bagio import BagReader, deserialize, header_stamp_ns
 from ptz_selfcal.tools.cli import CliError
-from ptz_selfcal.tools.report import STATUS_NAMES, format_table, write_json, write_plots
+from ptz_selfcal.tools.report import format_table, write_json, write_plots
 
-# FrameCalibration statuses whose orientation is a calibrated estimate
-_CALIBRATED = (1, 2)  # CALIBRATING, CONVERGED
+# FrameCalibration.status values whose orientation is a calibrated estimate
+_CALIBRATED = tuple(sorted(STATUS_TO_MSG[s] for s in CALIBRATED))
 _IMAGE_TOPICS = tuple(topics.bag_topic(t) for t in (topics.IMAGE_COMPRESSED, topics.IMAGE_RAW))
 
 
@@ -229,7 +231,7 @@ def evaluate(
         "truth": {"intrinsics": "ground truth" if have_k_truth else "none", "rotations": rot_source},
         "image_size": [width, height],
         "metrics": {},
-        "status_counts": {name: int((status == code).sum()) for code, name in enumerate(STATUS_NAMES)},
+        "status_counts": {str(s): int((status == STATUS_TO_MSG[s]).sum()) for s in CalibrationStatus},
     }
     report["status_counts"]["NO_OUTPUT"] = int((status < 0).sum())
     m = report["metrics"]

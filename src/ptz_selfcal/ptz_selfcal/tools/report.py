@@ -18,15 +18,6 @@ import numpy as np
 
 from ptz_selfcal.persist.atomic_file import atomic_write_text
 
-STATUS_NAMES = (
-    "INITIALISING",
-    "CALIBRATING",
-    "CONVERGED",
-    "DEGENERATE_MOTION",
-    "TRACKING_LOST",
-    "PREDICTED_FROM_ZOOM",
-)
-
 
 def _clean(value: Any) -> Any:
     """JSON-safe: numpy scalars/arrays to Python, NaN/inf to None."""
