@@ -332,7 +332,7 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
                     a = np.asarray(km.points, dtype=float).reshape(-1, 2)
                     b = np.asarray(km.other_points, dtype=float).reshape(-1, 2)
                     hook.matches(int(km.keyframe_id), int(km.other_keyframe_id), a, b)
-                if msg.state == 1:
+                if MSG_TO_TRACKING_STATE.get(msg.state) == TrackingState.NEW_KEYFRAME:
                     session.step(5.0)
                     if hook.work(session):
                         session.step(5.0)

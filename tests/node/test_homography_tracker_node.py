@@ -11,11 +11,17 @@ import pytest
 from conftest import PANORAMAS, node_command
 
 from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation
+from ptz_selfcal.nodes.conversions import MSG_TO_TRACKING_STATE
+from ptz_selfcal.status import HOMOGRAPHY_STATES, LOST_STATES, TrackingState
 
 ROS_DOMAIN_ID = 113
 MODULE = "ptz_selfcal.nodes.homography_tracker"
 W, H = 640, 360  # working size; full size is twice that (scale 0.5)
 K_FULL = intrinsic_matrix(900.0, 639.5, 359.5)
+
+
+def tracking_state(msg) -> TrackingState:
+    return MSG_TO_TRACKING_STATE[msg.state]
 
 
 def texture() -> np.ndarray:
@@ -136,14 +142,14 @@ def test_one_homography_per_frame_accurate_and_lost_frames_flagged(ros_env, star
     for msg, H_true in zip(harness.homographies[: len(pans)], truths):
         assert (msg.image_width, msg.image_height) == (2 * W, 2 * H)
         assert msg.encoders.valid and msg.encoders.zoom == 7.0
-        assert msg.state in (msg.TRACKING, msg.NEW_KEYFRAME, msg.RELOCALISED), msg.state
+        assert tracking_state(msg) in HOMOGRAPHY_STATES, msg.state
         assert msg.inlier_count >= 20
         h = np.asarray(msg.h).reshape(3, 3)
         error = np.linalg.norm(apply_homography(h, corners) - apply_homography(H_true, corners), axis=1)
         assert error.max() < 3.0, (msg.seq, error)  # full-resolution pixels
         assert msg.reference_stamp == harness.homographies[0].header.stamp
     for msg in harness.homographies[len(pans) :]:
-        assert msg.state in (msg.TRACKING_LOST, msg.TEXTURELESS)
+        assert tracking_state(msg) in LOST_STATES
         assert np.array_equal(np.asarray(msg.h), np.eye(3).ravel()) and msg.inlier_count == 0
     assert harness.keyframes, "an 8 degree pan must make new keyframes with links"
     for kf in harness.keyframes:
@@ -227,7 +233,9 @@ def test_restarted_tracker_reloads_its_map_and_keeps_the_reference(ros_env, star
         harness.spin(0.01)
     assert harness.spin(60.0, lambda: len(harness.homographies) >= len(pans)), proc.output()
     reference = harness.homographies[0].header.stamp
-    last_keyframe = max(m.keyframe_id for m in harness.homographies if m.state == m.NEW_KEYFRAME)
+    last_keyframe = max(
+        m.keyframe_id for m in harness.homographies if tracking_state(m) == TrackingState.NEW_KEYFRAME
+    )
     assert last_keyframe > 0, "an 8 degree pan must make new keyframes"
 
     def saved() -> bool:
@@ -252,12 +260,12 @@ def test_restarted_tracker_reloads_its_map_and_keeps_the_reference(ros_env, star
         harness.spin(0.01)
     assert harness.spin(30.0, lambda: len(harness.homographies) >= 3), proc.output()
     first = harness.homographies[0]
-    assert first.state == first.RELOCALISED, (first.state, proc.output())
+    assert tracking_state(first) == TrackingState.RELOCALISED, (first.state, proc.output())
     assert first.keyframe_id > last_keyframe
     corners = np.array([[0.0, 0.0], [1279.0, 0.0], [0.0, 719.0], [1279.0, 719.0], [640.0, 360.0]])
     for msg, k in zip(harness.homographies, (12, 13, 14)):
         assert msg.reference_stamp == reference and msg.reference_frame_id == "ptz_camera"
-        assert msg.state in (msg.TRACKING, msg.NEW_KEYFRAME, msg.RELOCALISED), msg.state
+        assert tracking_state(msg) in HOMOGRAPHY_STATES, msg.state
         H_true = frame(tex, float(pans[k]), float(0.2 * pans[k]))[1]
         h = np.asarray(msg.h).reshape(3, 3)
         error = np.linalg.norm(apply_homography(h, corners) - apply_homography(H_true, corners), axis=1)
@@ -282,9 +290,13 @@ def test_saved_map_follows_a_revisit(ros_env, start_process, harness, tmp_path):
         harness.send(seq, frame(tex, float(pan), float(0.2 * pan))[0], float(pan))
         harness.spin(0.01)
     assert harness.spin(60.0, lambda: len(harness.homographies) >= len(pans)), proc.output()
-    made = max(m.keyframe_id for m in harness.homographies if m.state == m.NEW_KEYFRAME)
+    made = max(m.keyframe_id for m in harness.homographies if tracking_state(m) == TrackingState.NEW_KEYFRAME)
     last = harness.homographies[-1]
-    assert last.state == last.TRACKING and last.keyframe_id < made, (last.state, last.keyframe_id, made)
+    assert tracking_state(last) == TrackingState.TRACKING and last.keyframe_id < made, (
+        last.state,
+        last.keyframe_id,
+        made,
+    )
 
     def saved_keyframe() -> int | None:
         try:
@@ -309,7 +321,7 @@ def test_corrupt_saved_map_gives_a_warning_and_a_new_map(ros_env, start_process,
     harness.send(0, frame(tex, 0.0, 0.0)[0], 0.0)
     assert harness.spin(20.0, lambda: len(harness.homographies) >= 1), proc.output()
     msg = harness.homographies[0]
-    assert msg.state == msg.NEW_KEYFRAME and msg.reference_stamp == msg.header.stamp
+    assert tracking_state(msg) == TrackingState.NEW_KEYFRAME and msg.reference_stamp == msg.header.stamp
     assert "ignoring the saved tracker map" in proc.output()
     assert proc.alive()
     assert proc.stop() == 0
