@@ -313,7 +313,7 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
     ):
         lens_correction.LensCorrection.frame_homography = method  # type: ignore[method-assign]
         try:
-            session = CalibratorSession(SessionConfig())
+            session = CalibratorSession(SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0))
             hook = lens_correction.SessionLensHook(session.config.nominal_focal)
             errors = []
             start = time.perf_counter()

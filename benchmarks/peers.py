@@ -517,7 +517,12 @@ def session_config(focal_model: str = "varying", fixed_lens_distortion: bool = F
     node passes them (a fixed lens estimates its one distortion coefficient in the session)."""
     from ptz_selfcal.online.session import SessionConfig
 
-    return SessionConfig(focal_model=focal_model, estimate_distortion=fixed_lens_distortion)
+    return SessionConfig(
+        focal_model=focal_model,
+        estimate_distortion=fixed_lens_distortion,
+        min_solve_period_s=0.0,
+        max_solve_duty=1.0,
+    )
 
 
 def run_session(

@@ -160,7 +160,7 @@ def long_sequence(n: int, width: int = 1280, height: int = 720):
 
 def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
     width, height = 1280, 720
-    session = CalibratorSession(SessionConfig())
+    session = CalibratorSession(SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0))
     rng = np.random.default_rng(0)
     frame_t = np.zeros(n)
     total_t = np.zeros(n)

@@ -603,7 +603,9 @@ def core_soak(n: int, warmup: tuple[int, int], width: int = 1280, height: int = 
     from ptz_selfcal.camera.geometry import apply_homography
     from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
 
-    session = CalibratorSession(SessionConfig(nominal_hfov_deg=55.0))
+    session = CalibratorSession(
+        SessionConfig(nominal_hfov_deg=55.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
     rng = np.random.default_rng(0)
     t = np.arange(period) / period
     f = 1100.0 * (2.0 - np.cos(2 * np.pi * t))

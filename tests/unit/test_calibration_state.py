@@ -59,7 +59,9 @@ def feed(session: cs.CalibratorSession, H, f, every: int = 8, seed: int = 0, fra
 @pytest.fixture(scope="module")
 def calibrated() -> tuple[cs.CalibratorSession, np.ndarray, np.ndarray, np.ndarray, list]:
     K, H, f = sweep(120)
-    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    session = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
     outs = feed(session, H, f)
     return session, K, H, f, outs
 
@@ -116,7 +118,10 @@ def test_save_restore_and_corrupt_files(calibrated, tmp_path: Path) -> None:
     assert {Path(p).name for p in written} == {cs.STATE_FILE, cs.ZOOM_MODEL_FILE}
     assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
 
-    restored = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    restored = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
+        state_dir=tmp_path,
+    )
     messages = restored.restore()
     assert not [m for m in messages if m.startswith("WARNING")], messages
     j = 100
@@ -131,7 +136,9 @@ def test_save_restore_and_corrupt_files(calibrated, tmp_path: Path) -> None:
 
     (tmp_path / cs.STATE_FILE).write_text("calibrator: [unclosed\n")
     (tmp_path / cs.ZOOM_MODEL_FILE).write_bytes(b"\x00\xff garbage")
-    fresh = cs.CalibratorSession(state_dir=tmp_path)
+    fresh = cs.CalibratorSession(
+        cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0), state_dir=tmp_path
+    )
     messages = fresh.restore()
     assert sum(m.startswith("WARNING") for m in messages) == 2, messages
     out = fresh.process(
@@ -156,7 +163,9 @@ def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path: Path, mo
 
 def test_pan_only_is_degenerate() -> None:
     _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
-    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    session = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
     outs = feed(session, H, f, every=6)
     assert outs[-1].status == cs.DEGENERATE_MOTION
     assert cs.CONVERGED not in {o.status for o in outs}
@@ -179,7 +188,9 @@ def test_reference_change_restarts_the_calibration(calibrated) -> None:
 @pytest.fixture(scope="module")
 def gated() -> tuple[cs.CalibratorSession, np.ndarray, np.ndarray, np.ndarray]:
     K, H, f = sweep(120)
-    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    session = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
     feed(session, H, f)
     return session, K, H, f
 
@@ -261,7 +272,9 @@ def test_keyframes_of_a_fast_move_stay_out_of_the_solve_but_are_calibrated(gated
 # ---------------------------------------------------------------------------------------------------------
 # A fixed lens (SessionConfig.focal_model = "constant"): one K for every image, a pan alone calibrates it
 def fixed_lens_config(**kwargs) -> cs.SessionConfig:
-    return cs.SessionConfig(nominal_hfov_deg=50.0, focal_model="constant", **kwargs)
+    return cs.SessionConfig(
+        nominal_hfov_deg=50.0, focal_model="constant", min_solve_period_s=0.0, max_solve_duty=1.0, **kwargs
+    )
 
 
 def test_fixed_lens_pan_only_converges_to_the_truth(tmp_path: Path) -> None:
@@ -298,7 +311,9 @@ def test_fixed_lens_pan_only_converges_to_the_truth(tmp_path: Path) -> None:
 
 def test_pan_only_with_a_zooming_model_says_why() -> None:
     _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
-    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0))
+    session = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
     outs = feed(session, H, f, every=6)
     assert outs[-1].status == cs.DEGENERATE_MOTION and "single axis" in outs[-1].message
 
@@ -455,7 +470,9 @@ def test_map_prior_is_weighed_with_the_measured_image_noise(seed: int) -> None:
     # The matches carry 0.2 px noise on one side (0.14 px per image); weighed for the printed 1 px
     # (eq. 27) the prior held the principal point 12-14 px off, at the image centre, in every seed.
     _, H, f = long_focal_sweep(160)
-    session = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=30.0))
+    session = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=30.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
     outs = feed(session, H, f, seed=seed)
     assert outs[-1].status == cs.CONVERGED
     assert 0.1 < session.solver.noise_estimate < 0.2
@@ -467,11 +484,18 @@ def test_restore_refuses_another_focal_model_and_keeps_the_noise_weight(calibrat
     session.state_dir = tmp_path
     session.save()
     assert session.solver.noise_estimate is not None
-    fixed = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0, focal_model="constant"))
+    fixed = cs.CalibratorSession(
+        cs.SessionConfig(
+            nominal_hfov_deg=50.0, focal_model="constant", min_solve_period_s=0.0, max_solve_duty=1.0
+        )
+    )
     fixed.state_dir = tmp_path
     messages = fixed.restore()
     assert any(m.startswith("WARNING") and "focal_model" in m for m in messages), messages
     assert fixed.calibrator is None  # starts fresh: a zoom lens's keyframes are not one K
-    same = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    same = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
+        state_dir=tmp_path,
+    )
     same.restore()
     assert same.solver.noise_estimate == pytest.approx(session.solver.noise_estimate)

@@ -419,13 +419,19 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
     from ptz_selfcal.online import session as cs
 
     K, H, f = sweep(120)
-    first = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    first = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
+        state_dir=tmp_path,
+    )
     feed(first, H, f)
     learned = first.zoom_model.sample_count
     assert learned >= 8 and first.zoom_model.live_count == learned  # the calibration's keyframes
     first.save()
     (tmp_path / cs.STATE_FILE).unlink()  # the calibration is not restored: a fresh one starts
-    second = cs.CalibratorSession(cs.SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    second = cs.CalibratorSession(
+        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
+        state_dir=tmp_path,
+    )
     messages = second.restore()
     assert any("loaded zoom model" in m for m in messages), messages
     assert second.zoom_model.live_count == 0 and second.zoom_model.sample_count == learned

@@ -37,14 +37,12 @@ from ptz_selfcal.camera.geometry import quaternion_from_matrix
 from ptz_selfcal.lens.correction import SessionLensHook
 from ptz_selfcal.nodes.conversions import (
     ConfigError,
-    Param,
     camera_info_fields,
     declare_params,
     diagnostic_values,
-    in_range,
-    one_of,
     stamp_to_sec,
 )
+from ptz_selfcal.nodes.params import CalibratorNodeConfig, config_kwargs, params_from
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal.online.session import (
     CalibratorSession,
@@ -54,108 +52,8 @@ from ptz_selfcal.online.session import (
 )
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches
 
-PARAMS = [
-    Param(
-        "nominal_hfov_deg",
-        60.0,
-        "horizontal field of view (deg) of the nominal prior used before the first calibration",
-        in_range(1.0, 170.0),
-    ),
-    Param(
-        "nominal_focal_px",
-        0.0,
-        "nominal focal length in full-resolution pixels (> 0 overrides nominal_hfov_deg)",
-        in_range(0.0, 1e6),
-    ),
-    Param(
-        "state_dir",
-        "",
-        "directory of the saved calibration state and zoom model ('' = no persistence)",
-    ),
-    Param("save_period", 30.0, "seconds between state saves (when changed)", in_range(0.1, 86400.0)),
-    Param(
-        "reoptimise_budget",
-        0.5,
-        "seconds one worker re-optimisation step may take (runs beside the frames, never blocks them)",
-        in_range(0.001, 60.0),
-    ),
-    Param("reoptimise_period", 0.05, "seconds the worker waits for new keyframes", in_range(0.001, 10.0)),
-    Param(
-        "reoptimise_min_interval",
-        0.1,
-        "seconds at least between two re-optimisations (keyframes arriving meanwhile are batched)",
-        in_range(0.0, 3600.0),
-    ),
-    Param(
-        "reoptimise_max_duty",
-        0.5,
-        "largest fraction of one core the re-optimisation may use (it shares the cores with the tracker)",
-        in_range(0.01, 1.0),
-    ),
-    Param(
-        "min_rotation_deg",
-        2.0,
-        "keyframe rotation off the reference's optical axis needed before the first solve (section 6)",
-        in_range(0.0, 90.0),
-    ),
-    Param("min_keyframes", 4, "keyframes needed before the first solve", in_range(2, 1000)),
-    Param(
-        "max_keyframes",
-        30,
-        "keyframes kept in the re-optimisation (bounds time and memory)",
-        in_range(4, 1000),
-    ),
-    Param("bundle_adjustment", True, "refine LM with the keyframe bundle adjustment (section 5)"),
-    Param(
-        "ba_principal_point",
-        "constant",
-        "principal point in the bundle adjustment: constant or varying (per keyframe), both with the prior",
-        one_of("constant", "varying"),
-    ),
-    Param(
-        "pp_prior_sigma_px",
-        20.0,
-        "1-sigma (px) of the MAP principal-point prior at the image centre (eq. 27)",
-        in_range(0.1, 1e5),
-    ),
-    Param(
-        "focal_model",
-        "varying",
-        "varying: a zooming camera, f per keyframe (pan-only or tilt-only motion is DEGENERATE_MOTION); "
-        "constant: a fixed lens, one f and principal point for every image, calibrated by a pan alone "
-        "(section 6.1: constant K with square pixels and zero skew)",
-        one_of("varying", "constant"),
-    ),
-    Param(
-        "converged_max_sigma_f",
-        0.01,
-        "focal_model constant: CONVERGED only while the focal length's 1-sigma is below this fraction "
-        "(else CALIBRATING)",
-        in_range(1e-6, 1.0),
-    ),
-    Param(
-        "converged_max_lens_model_change",
-        0.02,
-        "focal_model constant: CONVERGED only while f moves by less than this fraction when the "
-        "adjustment's radial term is toggled (a focal length the lens model moves is not pinned by the "
-        "geometry: a hand-held pan before its loop closes)",
-        in_range(1e-6, 10.0),
-    ),
-    Param(
-        "estimate_distortion",
-        False,
-        "radial distortion (issue 6). focal_model varying: through lens/correction.SessionLensHook, "
-        "division model about the principal point estimated in the keyframe bundle adjustment on the raw "
-        "keyframe matches (lam(f) curve), homographies corrected with it before self-calibration. "
-        "focal_model constant: ONE division coefficient for the lens, estimated with K in that "
-        "adjustment. D = its plumb_bob fit at each frame's K. Off by default: on an undistorted lens it "
-        "costs accuracy (demo bag focal median 0.026% -> 0.066%, benchmarks/results/distortion.txt)",
-    ),
-    Param(
-        "ba_max_points_per_pair", 50, "matches per keyframe pair used by the adjustment", in_range(8, 10000)
-    ),
-    Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
-]
+# The node's own settings, then the session's: names, defaults, descriptions and ranges from the dataclasses.
+PARAMS = params_from(CalibratorNodeConfig) + params_from(SessionConfig)
 
 _STATUS = {
     name: getattr(FrameCalibration, name)
@@ -188,22 +86,9 @@ class CalibratorNode(Node):
                 "principal point for every image)"
             )
         self._p = p
-        config = SessionConfig(
-            nominal_focal_px=p["nominal_focal_px"],
-            nominal_hfov_deg=p["nominal_hfov_deg"],
-            min_rotation_deg=p["min_rotation_deg"],
-            min_keyframes=p["min_keyframes"],
-            max_keyframes=max(p["max_keyframes"], p["min_keyframes"]),
-            bundle_adjustment=p["bundle_adjustment"],
-            ba_principal_point=p["ba_principal_point"],
-            pp_prior_sigma_px=p["pp_prior_sigma_px"],
-            ba_max_points_per_pair=p["ba_max_points_per_pair"],
-            min_solve_period_s=p["reoptimise_min_interval"],
-            max_solve_duty=p["reoptimise_max_duty"],
-            focal_model=p["focal_model"],
-            converged_max_sigma_f=p["converged_max_sigma_f"],
-            converged_max_lens_model_change=p["converged_max_lens_model_change"],
-        )
+        kwargs = config_kwargs(SessionConfig, p)
+        kwargs["max_keyframes"] = max(p["max_keyframes"], p["min_keyframes"])
+        config = SessionConfig(**kwargs)
         # a fixed lens estimates its one distortion coefficient inside the session's adjustment
         config.estimate_distortion = bool(p["estimate_distortion"]) and config.fixed_lens
         self._session = CalibratorSession(config, state_dir=p["state_dir"] or None)

@@ -12,72 +12,159 @@ from ptz_selfcal.camera.intrinsics import (
     IntrinsicsModel,
     ParamMode,
 )
+from ptz_selfcal.settings import setting
 
 Array = NDArray[np.float64]
 
 
 @dataclass
 class SessionConfig:
-    nominal_focal_px: float = 0.0  # > 0 overrides nominal_hfov_deg
-    nominal_hfov_deg: float = 60.0
-    min_rotation_deg: float = 2.0  # keyframe rotation needed before the first solve (section 6)
-    min_keyframes: int = 4
-    max_keyframes: int = 30
-    bundle_adjustment: bool = True
-    ba_principal_point: str = "constant"  # "constant" or "varying" (per keyframe), both with the prior
-    pp_prior_sigma_px: float = 20.0  # MAP principal point prior (eq. 27), 1-sigma each axis
-    ba_noise_sigma_px: float = 1.0  # image noise that weighs the prior (eq. 27)
-    ba_max_points_per_pair: int = 50
-    # with distortion estimated in the adjustment (raw points): more per pair, the distortion centre
-    # needs them (issue-6 bag replayed: focal median 0.32% with 50, 0.22% with 200)
-    ba_distortion_points_per_pair: int = 200
-    ba_max_iterations: int = 30
-    # the adjustment stops when an iteration lowers its cost by less than this fraction: a step worth
-    # < 1e-6 of the cost moved the unknowns by ~sqrt(1e-6 dof) ~ 0.1 of their 1-sigma at most (dof ~
-    # 1e4 residuals); the former 1e-10 spent a third of a warm-started adjustment's iterations
-    # creeping along the near-ambiguity of a pan before its loop closes (real sets: same final f)
-    ba_tolerance: float = 1e-6
-    # LM's starting damping in the adjustment (bundle_adjust initial_damping): 1e-6 crept along a
-    # pan's near-ambiguity (real sets: 66-91 iterations over a set instead of 42-77, same solutions)
-    ba_initial_damping: float = 1e-9
-    max_match_pairs: int = 256
-    max_focal_ratio: float = 20.0  # homographies scaling more than this are tracker failures
-    prior_sigma_f_fraction: float = 0.3  # 1-sigma reported for f from nominal parameters
-    zoom_model_min_keyframes: int = 4  # converged keyframes before the zoom model is used
-    # CPU share of the re-optimisation (the node runs it beside the tracker on the same cores): after a
-    # solve of t seconds the next waits max(min_solve_period_s, t (1 - duty) / duty); 0 = no limit
-    min_solve_period_s: float = 0.0
-    max_solve_duty: float = 1.0
-    # Frame gates (issue 7). A homography whose K (DIAC transfer, eq. 20) contradicts the zoom model at
-    # the frame's zoom encoder by more than max(zoom_gate_floor, zoom_gate_sigmas sigma) in log f, inside
-    # the model's learned zoom range, is refused: PREDICTED_FROM_ZOOM, never a keyframe of the solve.
-    zoom_gate_sigmas: float = 4.0
-    zoom_gate_floor: float = 0.1
-    zoom_gate_still: float = 0.01  # judged only while the zoom encoder changes less per frame
-    # Keyframes of a fast move (image corners moving more than this many image widths per second, i.e.
-    # 20 % of the width per frame at 30 fps: a preset recall, not tracking) stay out of the solve: their
-    # homographies chain over small overlaps and drift, and real cameras blur them. Their frames are
-    # still calibrated. (The CI synth bag's sweep moves up to ~11 % per frame.)
-    max_keyframe_motion: float = 6.0
-    # "varying": a zooming camera, f per keyframe (pan-only motion is DEGENERATE_MOTION, section 6.1).
-    # "constant": a fixed lens, one f and one principal point for every image (square pixels, zero
-    # skew): a pan alone calibrates it (degeneracy.single_axis_is_degenerate); every frame has that K.
-    focal_model: str = "varying"
-    # Fixed lens only: ONE radial (division) coefficient about the principal point for every image,
-    # estimated with K in the keyframe bundle adjustment on the raw keyframe matches (bundle.py
-    # distortion="shared"). A zooming lens estimates distortion through lens/correction instead.
-    estimate_distortion: bool = False
-    # Fixed lens: CONVERGED (what a user may take as the calibration) also needs the focal length's
-    # 1-sigma below this fraction; above it a stable solution is still CALIBRATING (DESIGN.md 5.5:
-    # uncertainty reported instead of confident nonsense). A hand-held pan's sigma_f is 2-5% before
-    # its loop closes, 0.02-0.04% after (the real sets, benchmarks/peers.py).
-    converged_max_sigma_f: float = 0.01
-    # Fixed lens: CONVERGED also needs f to move by less than this fraction when the adjustment's
-    # radial term is toggled (KeyframeBundleSolver._lens_model_change): sigma_f measures the noise, not
-    # the lens model's bias (grail before its loop closes: sigma_f 0.7%, 5-7% off AutoStitch, 18% apart
-    # with and without the radial term; after: 0.9%). Conservative: a strongly distorted lens whose
-    # pan never closes a loop stays CALIBRATING.
-    converged_max_lens_model_change: float = 0.02
+    """The online calibrator's settings: each field is also the calibrator node's parameter of that name
+    (or of its Setting.param), with this description and range (nodes/params.py)."""
+
+    nominal_focal_px: float = setting(
+        0.0,
+        "nominal focal length in full-resolution pixels (> 0 overrides nominal_hfov_deg)",
+        bounds=(0.0, 1e6),
+    )
+    nominal_hfov_deg: float = setting(
+        60.0,
+        "horizontal field of view (deg) of the nominal prior used before the first calibration",
+        bounds=(1.0, 170.0),
+    )
+    min_rotation_deg: float = setting(
+        2.0,
+        "keyframe rotation off the reference's optical axis needed before the first solve (section 6)",
+        bounds=(0.0, 90.0),
+    )
+    min_keyframes: int = setting(4, "keyframes needed before the first solve", bounds=(2, 1000))
+    max_keyframes: int = setting(
+        30, "keyframes kept in the re-optimisation (bounds time and memory)", bounds=(4, 1000)
+    )
+    bundle_adjustment: bool = setting(True, "refine LM with the keyframe bundle adjustment (section 5)")
+    ba_principal_point: str = setting(
+        "constant",
+        "principal point in the bundle adjustment: constant or varying (per keyframe), both with the prior",
+        choices=("constant", "varying"),
+    )
+    pp_prior_sigma_px: float = setting(
+        20.0,
+        "1-sigma (px) of the MAP principal-point prior at the image centre, each axis (eq. 27)",
+        bounds=(0.1, 1e5),
+    )
+    ba_noise_sigma_px: float = setting(
+        1.0, "image noise (px, 1-sigma) that weighs the principal-point prior (eq. 27)", bounds=(0.01, 100.0)
+    )
+    ba_max_points_per_pair: int = setting(
+        50, "matches per keyframe pair used by the adjustment", bounds=(8, 10000)
+    )
+    ba_distortion_points_per_pair: int = setting(
+        200,
+        "matches per keyframe pair when the adjustment estimates distortion on raw points (more than "
+        "ba_max_points_per_pair: the distortion centre needs them)",
+        bounds=(8, 10000),
+    )
+    ba_max_iterations: int = setting(
+        30, "iterations of one keyframe bundle adjustment at most", bounds=(1, 10000)
+    )
+    # a step lowering the cost by < 1e-6 of it moves the unknowns by ~sqrt(1e-6 dof) ~ 0.1 sigma at most
+    # (dof ~ 1e4 residuals): smaller tolerances only creep along a pan's near-ambiguity, same final f
+    ba_tolerance: float = setting(
+        1e-6,
+        "the adjustment stops when an iteration lowers its cost by less than this fraction",
+        bounds=(0.0, 1.0),
+    )
+    # a larger start creeps along a pan's near-ambiguity for more iterations to the same solution
+    ba_initial_damping: float = setting(
+        1e-9, "LM's starting damping in the keyframe bundle adjustment", bounds=(0.0, 1e6)
+    )
+    max_match_pairs: int = setting(
+        256, "keyframe match sets kept at most (the oldest are dropped)", bounds=(1, 100000)
+    )
+    max_focal_ratio: float = setting(
+        20.0, "homographies scaling more than this are tracker failures and are ignored", bounds=(1.0, 1e4)
+    )
+    prior_sigma_f_fraction: float = setting(
+        0.3,
+        "1-sigma reported for f, as a fraction of f, while K comes from the nominal parameters",
+        bounds=(0.0, 100.0),
+    )
+    zoom_model_min_keyframes: int = setting(
+        4, "converged keyframes sampled before the zoom model is used", bounds=(1, 100000)
+    )
+    # The node runs the re-optimisation beside the tracker on the same cores: after a solve of t seconds
+    # the next waits max(min_solve_period_s, t (1 - duty) / duty).
+    min_solve_period_s: float = setting(
+        0.1,
+        "seconds at least between two re-optimisations (keyframes arriving meanwhile are batched)",
+        bounds=(0.0, 3600.0),
+        param="reoptimise_min_interval",
+    )
+    max_solve_duty: float = setting(
+        0.5,
+        "largest fraction of one core the re-optimisation may use (it shares the cores with the tracker)",
+        bounds=(0.01, 1.0),
+        param="reoptimise_max_duty",
+    )
+    # Frame gates (issue 7): a homography whose K (DIAC transfer, eq. 20) contradicts the zoom model is
+    # refused: PREDICTED_FROM_ZOOM, never a keyframe of the solve.
+    zoom_gate_sigmas: float = setting(
+        4.0,
+        "zoom gate: a frame's K further than max(zoom_gate_floor, this many sigma) in log f from the zoom "
+        "model at its zoom encoder, inside the model's learned zoom range, is refused",
+        bounds=(0.0, 1000.0),
+    )
+    zoom_gate_floor: float = setting(
+        0.1, "zoom gate: the smallest disagreement in log f that refuses a frame", bounds=(0.0, 10.0)
+    )
+    zoom_gate_still: float = setting(
+        0.01,
+        "zoom gate: judged only while the zoom model's f changes by less than this (log f) from the "
+        "previous frame's zoom encoder (a moving zoom's encoder can lag the image)",
+        bounds=(0.0, 10.0),
+    )
+    # 6 widths/s = 20 % of the width per frame at 30 fps: a preset recall, not tracking; such
+    # homographies chain over small overlaps and drift, and real cameras blur them
+    max_keyframe_motion: float = setting(
+        6.0,
+        "keyframes of a faster move (image corners moving more than this many image widths per second) "
+        "stay out of the solve; their frames are still calibrated",
+        bounds=(1e-3, 1e6),
+    )
+    focal_model: str = setting(
+        "varying",
+        "varying: a zooming camera, f per keyframe (pan-only or tilt-only motion is DEGENERATE_MOTION); "
+        "constant: a fixed lens, one f and principal point for every image, calibrated by a pan alone "
+        "(section 6.1: constant K with square pixels and zero skew)",
+        choices=("varying", "constant"),
+    )
+    # In the session this is the fixed lens's one coefficient (bundle/adjust distortion="shared"); the
+    # node gives a zooming lens's estimate_distortion to lens/correction.SessionLensHook instead.
+    estimate_distortion: bool = setting(
+        False,
+        "radial distortion (issue 6). focal_model varying: through lens/correction.SessionLensHook, "
+        "division model about the principal point estimated in the keyframe bundle adjustment on the raw "
+        "keyframe matches (lam(f) curve), homographies corrected with it before self-calibration. "
+        "focal_model constant: ONE division coefficient for the lens, estimated with K in that "
+        "adjustment. D = its plumb_bob fit at each frame's K. Off by default: on an undistorted lens it "
+        "costs accuracy (benchmarks/results/distortion.txt)",
+    )
+    # sigma_f measures the noise: uncertainty is reported instead of confident nonsense (DESIGN.md 5.5)
+    converged_max_sigma_f: float = setting(
+        0.01,
+        "focal_model constant: CONVERGED only while the focal length's 1-sigma is below this fraction "
+        "(else CALIBRATING)",
+        bounds=(1e-6, 1.0),
+    )
+    # sigma_f does not measure the lens model's bias: toggling the radial term does (conservative: a
+    # strongly distorted lens whose pan never closes a loop stays CALIBRATING)
+    converged_max_lens_model_change: float = setting(
+        0.02,
+        "focal_model constant: CONVERGED only while f moves by less than this fraction when the "
+        "adjustment's radial term is toggled (a focal length the lens model moves is not pinned by the "
+        "geometry: a hand-held pan before its loop closes)",
+        bounds=(1e-6, 10.0),
+    )
 
     def __post_init__(self) -> None:
         if self.focal_model not in ("varying", "constant"):
