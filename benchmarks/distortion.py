@@ -215,7 +215,7 @@ def joint_bundle(run: dict, lines: list[str]) -> None:
     raw keyframe matches, all keyframes, from f +2%, the principal point at the image centre, lam = 0
     and the true rotations; MAP prior of eq. 27 (sigma 20 px) weighed with the noise of a first pass
     (as online/session.KeyframeBundleSolver does)."""
-    from ptz_selfcal.bundle.adjust import bundle_adjust, default_pp_prior, pair_observations
+    from ptz_selfcal.bundle import bundle_adjust, default_pp_prior, pair_observations
 
     W, H = run["size"]
     ids = sorted(run["H"])

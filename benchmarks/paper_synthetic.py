@@ -39,7 +39,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ptz_selfcal.bundle.adjust import bundle_adjust, default_pp_prior  # noqa: E402
+from ptz_selfcal.bundle import bundle_adjust, default_pp_prior  # noqa: E402
 from ptz_selfcal.camera.intrinsics import (  # noqa: E402
     SQUARE_CONSTANT_PP,
     SQUARE_VARYING_PP,
@@ -331,7 +331,11 @@ PKG = "src/ptz_selfcal/ptz_selfcal/"
 DEPENDENCIES = [
     f"{PKG}{name}.py"
     for name in (
+        "bundle/__init__",
         "bundle/adjust",
+        "bundle/observations",
+        "bundle/problem",
+        "bundle/schur",
         "sim/synthetic",
         "selfcal/linear",
         "selfcal/lm",

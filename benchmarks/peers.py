@@ -392,7 +392,7 @@ def transferred_observations(
 
 def link_observations(tracking: Tracking, idx: IntArray) -> tuple[IntArray, IntArray, Array]:
     """BA observations from the tracker's keyframe links between evaluation frames (real measurements)."""
-    from ptz_selfcal.bundle.adjust import pair_observations
+    from ptz_selfcal.bundle import pair_observations
 
     pos = {int(f): k for k, f in enumerate(idx)}
     links = {(lk.source_id, lk.target_id): lk for r in tracking.results for lk in r.links}
@@ -409,7 +409,7 @@ def bundle_rows(
     obs: tuple, size: tuple[int, int], inits: dict[str, tuple[Array, Array]]
 ) -> dict[str, Callable]:
     """MLE (eq. 26) and MAP (eq. 27) from the LM solutions; a fixed lens gets its own MAP row."""
-    from ptz_selfcal.bundle.adjust import bundle_adjust, default_pp_prior
+    from ptz_selfcal.bundle import bundle_adjust, default_pp_prior
 
     def run(model: IntrinsicsModel, init: tuple[Array, Array], prior=None) -> Callable:
         def fn() -> tuple[Array, Array]:

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from ptz_selfcal.bundle import adjust as bundle
-from ptz_selfcal.bundle.adjust import (
+from ptz_selfcal.bundle import (
     BundleObservations,
     bundle_adjust,
     default_pp_prior,
     pair_observations,
+    problem,
 )
+from ptz_selfcal.bundle.observations import initial_rays, prepare_observations
 from ptz_selfcal.camera.geometry import rot_x, rot_y, rot_z, rotation_angle
 from ptz_selfcal.camera.intrinsics import (
     SQUARE_CONSTANT_PP,
@@ -19,6 +22,8 @@ from ptz_selfcal.camera.intrinsics import (
     IntrinsicsModel,
     ParamMode,
     SelfCalibrationError,
+    matrices_from_values,
+    values_from_matrices,
 )
 from ptz_selfcal.sim.synthetic import paper_sequence
 
@@ -80,13 +85,13 @@ def test_rotated_gauge_and_given_rays_are_accepted() -> None:
 def _assert_jacobians_match_finite_differences(state, obs, layout, params) -> None:
     """Analytic camera Jacobian (columns `params`) and ray Jacobian against central differences."""
     n_rays = int(obs.ray_idx.max()) + 1
-    _, Y = bundle._residuals(state, obs)
-    J_cam, J_ray = bundle._jacobians(state, obs, Y, layout)  # (2, L, N) and (2, 2, N)
+    _, Y = problem.residuals(state, obs)
+    J_cam, J_ray = problem.jacobians(state, obs, Y, layout)  # (2, L, N) and (2, 2, N)
     eps = 1e-6
 
     def central_difference(d_cam, d_ray):
-        r_p, _ = bundle._residuals(bundle._apply_step(state, d_cam, d_ray, layout, 1.0), obs)
-        r_m, _ = bundle._residuals(bundle._apply_step(state, -d_cam, -d_ray, layout, 1.0), obs)
+        r_p, _ = problem.residuals(problem.apply_step(state, d_cam, d_ray, layout, 1.0), obs)
+        r_m, _ = problem.residuals(problem.apply_step(state, -d_cam, -d_ray, layout, 1.0), obs)
         return (r_p - r_m) / (2 * eps)
 
     for p in params:
@@ -110,14 +115,14 @@ def test_analytic_jacobians_match_finite_differences() -> None:
     model = IntrinsicsModel(
         aspect=ParamMode.CONSTANT, skew=ParamMode.VARYING, principal_point=ParamMode.VARYING
     )
-    obs, _ = bundle._prepare(seq.observations(), 30)
+    obs, _ = prepare_observations(seq.observations(), 30)
     n_rays = int(obs.ray_idx.max()) + 1
     K, R = _perturbed_start(seq, seed=2, focal_scale=1.01)
-    values = bundle.values_from_matrices(K)
+    values = values_from_matrices(K)
     values[:, 2] = 1e-3 * np.arange(30)  # non-zero skew so its derivatives are exercised
     values[:, 1] = 1.01
-    state = bundle._State(values, R, bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays))
-    layout = bundle._layout(model, 30, use_prior=False)
+    state = problem.State(values, R, initial_rays(obs, matrices_from_values(values), R, n_rays))
+    layout = problem.parameter_layout(model, 30, use_prior=False)
     # intrinsics (f, aspect, skew, pp) and rotations of several frames
     _assert_jacobians_match_finite_differences(state, obs, layout, (0, 7, 31, 60, 95, layout.n_params - 1))
 
@@ -408,22 +413,23 @@ def _centred_start(K, image_size, focal_scale=1.02):
 def test_distortion_jacobians_match_finite_differences(mode) -> None:
     obs_in, K, R, state, size = _distorted_keyframe_pairs(0.12)
     n = len(K)
-    obs, _ = bundle._prepare(obs_in, n)
+    obs, _ = prepare_observations(obs_in, n)
     n_rays = int(obs.ray_idx.max()) + 1
     model = IntrinsicsModel(
         aspect=ParamMode.CONSTANT, skew=ParamMode.VARYING, principal_point=ParamMode.VARYING
     )
-    values = bundle.values_from_matrices(_centred_start(K, size))
+    values = values_from_matrices(_centred_start(K, size))
     values[:, 1], values[:, 2] = 1.01, 2e-3 * np.arange(n)
     lam = state.lam * 1.1
-    X = bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays)
+    X = initial_rays(obs, matrices_from_values(values), R, n_rays)
     curve = None
     if mode == "curve":  # a curve with all three coefficients non-zero, f_ref away from every f
-        curve = bundle._Curve.fit(values[:, 0], lam, 0.9 * values[:, 0].min(), 734.0, 2)
-        curve = bundle.replace(curve, coefficients=curve.coefficients + np.array([0.01, -0.02, 0.03]))
+        curve = problem.LamCurve.fit(values[:, 0], lam, 0.9 * values[:, 0].min(), 734.0, 2)
+        curve = replace(curve, coefficients=curve.coefficients + np.array([0.01, -0.02, 0.03]))
         lam = curve.lam(values[:, 0])
-    st = bundle._State(values, R, X, lam, curve)
-    layout = bundle._layout(model, n, use_prior=False, distortion=True, curve_size=0 if curve is None else 3)
+    st = problem.State(values, R, X, lam, curve)
+    curve_size = 0 if curve is None else 3
+    layout = problem.parameter_layout(model, n, use_prior=False, distortion=True, curve_size=curve_size)
     # rotations, f, aspect, skew, pp and every lam (or the curve)
     _assert_jacobians_match_finite_differences(st, obs, layout, range(layout.n_params))
 
@@ -527,12 +533,12 @@ def _fixed_lens_pan_pairs(corner_shift: float, tilt_deg: float = 0.0, noise=0.0,
 def test_shared_distortion_jacobians_match_finite_differences() -> None:
     obs_in, K, R, lam, size = _fixed_lens_pan_pairs(0.08)
     n = len(K)
-    obs, _ = bundle._prepare(obs_in, n)
+    obs, _ = prepare_observations(obs_in, n)
     n_rays = int(obs.ray_idx.max()) + 1
-    values = bundle.values_from_matrices(_centred_start(K, size))
-    X = bundle.initial_rays(obs, bundle.matrices_from_values(values), R, n_rays)
-    st = bundle._State(values, R, X, np.full(n, 1.1 * lam))
-    layout = bundle._layout(FIXED_LENS, n, use_prior=False, distortion=True, shared=True)
+    values = values_from_matrices(_centred_start(K, size))
+    X = initial_rays(obs, matrices_from_values(values), R, n_rays)
+    st = problem.State(values, R, X, np.full(n, 1.1 * lam))
+    layout = problem.parameter_layout(FIXED_LENS, n, use_prior=False, distortion=True, shared=True)
     assert layout.n_params == 3 + 3 * (n - 1) + 1  # f, cx, cy, rotations, one lam
     _assert_jacobians_match_finite_differences(st, obs, layout, range(layout.n_params))
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.bundle.adjust import bundle_adjust, pair_observations
+from ptz_selfcal.bundle import bundle_adjust, pair_observations
 from ptz_selfcal.camera.geometry import (
     apply_homography,
     pixel_grid,
