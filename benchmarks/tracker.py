@@ -38,8 +38,10 @@ from ptz_selfcal.camera.geometry import (  # noqa: E402
     relative_rotation,
     transfer_error,
 )
-from ptz_selfcal.frontend.tracker import HomographyTracker, TrackerConfig, TrackingState  # noqa: E402
+from ptz_selfcal.frontend.tracker import HomographyTracker  # noqa: E402
+from ptz_selfcal.frontend.tracker_config import TrackerConfig  # noqa: E402
 from ptz_selfcal.sim.render import build_panorama, render_view  # noqa: E402
+from ptz_selfcal.status import TrackingState  # noqa: E402
 
 DATA = Path("/work/shared/data")
 PANORAMAS = ("building.jpg", "examplepano.jpg", "dawn4000x2000.jpg", "field.jpg")

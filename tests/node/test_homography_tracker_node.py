@@ -277,7 +277,7 @@ def test_restarted_tracker_reloads_its_map_and_keeps_the_reference(ros_env, star
 def test_saved_map_follows_a_revisit(ros_env, start_process, harness, tmp_path):
     """A pan out and back: the way back tracks the keyframes of the way out (TRACKING, no new keyframe)
     and the saved map says which one it tracks last, so a restart relocalises against it first."""
-    from ptz_selfcal.frontend.tracker import map_from_bytes
+    from ptz_selfcal.frontend.tracker_map import map_from_bytes
 
     state = tmp_path / "state"
     args = ("-p", f"state_dir:={state}", "-p", "save_period:=0.2")

@@ -86,7 +86,7 @@ def test_default_yaml_lists_every_node_parameter_with_its_default_and_a_descript
 
 def test_tracker_string_parameters_accept_only_their_choices():
     """An unknown klt_source ran silently as "warped"; now the node refuses it (and the core too)."""
-    from ptz_selfcal.frontend.tracker import TRACKER_CHOICES, TrackerConfig
+    from ptz_selfcal.frontend.tracker_config import TRACKER_CHOICES, TrackerConfig
     from ptz_selfcal.nodes import homography_tracker
 
     checks = {p.name: p.check for p in homography_tracker.tracker_params()}

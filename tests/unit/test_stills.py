@@ -28,7 +28,7 @@ from ptz_selfcal.frontend.stills import (
     path_rotations,
     points_inside,
 )
-from ptz_selfcal.frontend.tracker import TrackingState
+from ptz_selfcal.status import TrackingState
 
 PANORAMA = Path("/work/shared/data/panoramas/examplepano.jpg")
 SIZE = (320, 240)

@@ -10,13 +10,10 @@ import pytest
 
 from ptz_selfcal.camera.geometry import apply_homography, homography_work_to_full, transfer_error
 from ptz_selfcal.frontend.features import robust_homography, usac_params
-from ptz_selfcal.frontend.tracker import (
-    HomographyTracker,
-    TrackerConfig,
-    TrackingState,
-    map_from_bytes,
-    map_to_bytes,
-)
+from ptz_selfcal.frontend.tracker import HomographyTracker
+from ptz_selfcal.frontend.tracker_config import TrackerConfig
+from ptz_selfcal.frontend.tracker_map import map_from_bytes, map_to_bytes
+from ptz_selfcal.status import TrackingState
 
 PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
 SCALE = 0.5  # working / full resolution

@@ -108,6 +108,26 @@ def track_klt(
     return p1, ok
 
 
+def gain_matched(previous: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """Previous frame rescaled to the current mean brightness (KLT assumes constant brightness)."""
+    mean_prev = float(cv2.mean(previous)[0])
+    mean_cur = float(cv2.mean(image)[0])
+    if mean_prev < 1.0 or abs(mean_cur / mean_prev - 1.0) < 0.02:
+        return previous
+    return cv2.convertScaleAbs(previous, alpha=mean_cur / mean_prev)
+
+
+def gain_matched_warp(warped: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """As gain_matched, with the means taken where the warped keyframe has data (not the border)."""
+    sub_warp, sub_image = warped[::4, ::4], image[::4, ::4]  # a 1/16 sample is plenty for a gain
+    valid = sub_warp > 0
+    mean_warp = float(sub_warp[valid].mean()) if valid.any() else 0.0
+    mean_cur = float(sub_image[valid].mean()) if valid.any() else 0.0
+    if mean_warp < 1.0 or abs(mean_cur / mean_warp - 1.0) < 0.02:
+        return warped
+    return cv2.convertScaleAbs(warped, alpha=mean_cur / mean_warp)
+
+
 @dataclass(frozen=True)
 class RobustFit:
     H: Array  # maps src to dst

@@ -3,10 +3,13 @@
 Normalised DLT (Hartley) for a linear estimate, then Gold-Standard refinement: the homography and
 the corrected reference points are adjusted to minimise the reprojection error in both images.
 For speed on long point lists `refine_homography` minimises the one-image transfer error by default.
+Then measures of what a homography does to an image (overlap, local scale, deviation, plausibility),
+by which the tracker chooses keyframes and checks links.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
@@ -84,3 +87,44 @@ def refine_homography(H0: ArrayLike, src: ArrayLike, dst: ArrayLike, max_nfev: i
 def estimate_homography(src: ArrayLike, dst: ArrayLike) -> Array:
     """Normalised DLT followed by non-linear refinement (all points taken as inliers)."""
     return refine_homography(homography_dlt(src, dst), src, dst)
+
+
+# ----------------------------------------------------------------------------- a homography over an image
+def _corners(shape: tuple[int, ...]) -> Array:
+    h, w = shape[:2]
+    return np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
+
+
+def overlap_fraction(H_frame_to_keyframe: Array, shape: tuple[int, ...]) -> float:
+    """Fraction of the frame's area that lies inside the keyframe (both the same image size)."""
+    quad = apply_homography(H_frame_to_keyframe, _corners(shape)).astype(np.float32)
+    area = abs(cv2.contourArea(quad))
+    if not np.all(np.isfinite(quad)) or area <= 0.0 or not cv2.isContourConvex(quad):
+        return 0.0
+    inter, _ = cv2.intersectConvexConvex(quad, _corners(shape).astype(np.float32))
+    return float(inter / area)
+
+
+def local_scale(H: Array, shape: tuple[int, ...]) -> float:
+    """sqrt|det J| of x -> Hx at the image centre: the zoom factor between the two images there."""
+    h, w = shape[:2]
+    x = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+    p = H @ x
+    J = (H[:2, :2] * p[2] - np.outer(p[:2], H[2, :2])) / p[2] ** 2
+    return float(np.sqrt(abs(np.linalg.det(J))))
+
+
+def max_deviation(H_a: Array, H_b: Array, shape: tuple[int, ...]) -> float:
+    """Largest distance between two homographies' images of a grid over the source image."""
+    h, w = shape[:2]
+    grid = np.stack(np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 4)), -1).reshape(-1, 2)
+    return float(np.max(np.linalg.norm(apply_homography(H_a, grid) - apply_homography(H_b, grid), axis=1)))
+
+
+def plausible(H: Array, shape: tuple[int, ...]) -> bool:
+    """Reject degenerate fits: the frame must map to a convex quadrilateral of sane size."""
+    quad = apply_homography(H, _corners(shape)).astype(np.float32)
+    if not np.all(np.isfinite(quad)) or not cv2.isContourConvex(quad):
+        return False
+    ratio = abs(cv2.contourArea(quad)) / float(shape[0] * shape[1])
+    return 0.05 < ratio < 20.0

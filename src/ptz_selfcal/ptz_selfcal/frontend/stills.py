@@ -39,8 +39,10 @@ from numpy.typing import ArrayLike, NDArray
 from ptz_selfcal.camera.geometry import apply_homography
 from ptz_selfcal.camera.intrinsics import image_centre
 from ptz_selfcal.frontend.features import Descriptors, robust_homography, usac_params
-from ptz_selfcal.frontend.tracker import KeyframeLink, TrackingState, TrackResult
+from ptz_selfcal.frontend.keyframe_links import KeyframeLink
+from ptz_selfcal.frontend.tracker import TrackResult
 from ptz_selfcal.selfcal.linear import normalise_homographies, normalising_transform
+from ptz_selfcal.status import TrackingState
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]

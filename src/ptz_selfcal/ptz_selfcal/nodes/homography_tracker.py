@@ -38,15 +38,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 
 from ptz_selfcal import topics
-from ptz_selfcal.frontend.tracker import (
-    TRACKER_CHOICES,
-    HomographyTracker,
-    TrackerConfig,
-    TrackingState,
-    TrackResult,
-    map_from_bytes,
-    map_to_bytes,
-)
+from ptz_selfcal.frontend.tracker import HomographyTracker, TrackResult
+from ptz_selfcal.frontend.tracker_config import TRACKER_CHOICES, TrackerConfig
+from ptz_selfcal.frontend.tracker_map import map_from_bytes, map_to_bytes
 from ptz_selfcal.nodes.conversions import (
     ConfigError,
     FrameError,
@@ -60,6 +54,7 @@ from ptz_selfcal.nodes.conversions import (
 )
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal.persist.atomic_file import atomic_write_bytes, remove_stale_temporaries
+from ptz_selfcal.status import TrackingState
 from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
 
 PARAMS = [
