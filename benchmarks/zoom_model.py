@@ -311,9 +311,10 @@ def one_bag(
         fig2 = model_figures(after, frames, truth, size, law)
         if fig2["n"]:
             f2 = fig2["f"]
+            calibrations = sorted({b["calibration"] for b in after.to_dict()["bins"]} | {after.calibration})
             lines.append(
                 f"   model saved by {label}: {after.sample_count} samples ({model.sample_count} from run 1), "
-                f"calibrations {sorted({c for c, _ in after._bins} | {after.calibration})}; on run 1's "
+                f"calibrations {calibrations}; on run 1's "
                 f"frames: focal error median {np.median(f2):.3f}%, max {f2.max():.3f}%"
             )
     return lines

@@ -30,7 +30,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
         cmd = sub.add_parser(name, help=help_text, description=help_text)
-        cmd.set_defaults(_module=module_name)
+        cmd.set_defaults(command_module=module_name)
         if name in (sys.argv[1:] if argv is None else argv)[:1]:  # only the chosen command's module
             importlib.import_module(module_name).add_arguments(cmd)
     return parser
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     cli_error = importlib.import_module("ptz_selfcal.tools.cli").CliError
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    module = importlib.import_module(args._module)
+    module = importlib.import_module(args.command_module)
     try:
         return int(module.run(args) or 0)
     except (cli_error, BagError) as exc:

@@ -265,7 +265,7 @@ class Supervisor:
         self._stopping = False
         self.fatal: str | None = None
         self.final_cpu_seconds: dict[str, float] = {}
-        self._log = log or (lambda text: self._write(f"[launch] {text}\n"))
+        self.log = log or (lambda text: self._write(f"[launch] {text}\n"))
 
     # -- output
     def _write(self, text: str) -> None:
@@ -315,7 +315,7 @@ class Supervisor:
         child.restart_at = None
         child.reader = threading.Thread(target=self._pump, args=(child, child.process.stdout), daemon=True)
         child.reader.start()
-        self._log(f"started {child.spec.name} (pid {child.process.pid})")
+        self.log(f"started {child.spec.name} (pid {child.process.pid})")
 
     def _prioritise(self, pid: int) -> None:
         """Niceness of a just-started node: of its session's autogroup (with the kernel's autogroups every
@@ -328,7 +328,7 @@ class Supervisor:
         try:
             os.setpriority(os.PRIO_PROCESS, pid, self.nice)
         except OSError as exc:
-            self._log(f"cannot set nice {self.nice} for pid {pid}: {exc.strerror or exc}")
+            self.log(f"cannot set nice {self.nice} for pid {pid}: {exc.strerror or exc}")
 
     def start(self) -> None:
         for child in self.children:
@@ -369,12 +369,12 @@ class Supervisor:
                 self.fatal = f"{child.spec.name} exited with status {code} at start-up" + (
                     f": {last}" if last else ""
                 )
-                self._log(self.fatal)
+                self.log(self.fatal)
                 return
             child.failures = child.failures + 1 if lived < self.stable_after else 1
             delay = min(self.max_backoff, 0.5 * 2 ** (child.failures - 1))
             child.restart_at = now + delay
-            self._log(
+            self.log(
                 f"{child.spec.name} exited unexpectedly with status {code} after {lived:.1f} s; "
                 f"restart #{child.restarts + 1} in {delay:.1f} s"
             )
@@ -405,7 +405,7 @@ class Supervisor:
             if not alive:
                 break
             if sig != signal.SIGINT:
-                self._log(f"{', '.join(alive)} still running: sending {signal.Signals(sig).name}")
+                self.log(f"{', '.join(alive)} still running: sending {signal.Signals(sig).name}")
             for proc in alive.values():
                 with contextlib.suppress(ProcessLookupError):
                     proc.send_signal(sig)
@@ -512,7 +512,7 @@ def run(args: argparse.Namespace) -> int:
         env = lease_environment(args.dds_lease, tmp)
         supervisor = Supervisor(specs, params_file, namespace, remaps, nice=args.nice, env=env)
         if env:
-            supervisor._log(f"DDS participant lease {args.dds_lease:g} s ({env[PROFILE_VARIABLES[0]]})")
+            supervisor.log(f"DDS participant lease {args.dds_lease:g} s ({env[PROFILE_VARIABLES[0]]})")
         stop = threading.Event()
 
         def on_signal(signum: int, _frame: Any) -> None:
@@ -525,13 +525,13 @@ def run(args: argparse.Namespace) -> int:
                 supervisor.poll()
                 stop.wait(0.1)
         finally:
-            supervisor._log("stopping")
+            supervisor.log("stopping")
             codes = supervisor.stop(timeout=args.stop_timeout)
             for s, handler in previous.items():
                 signal.signal(s, handler)
             summary = ", ".join(f"{n}: {c}" for n, c in codes.items())
             restarts = sum(supervisor.restarts.values())
-            supervisor._log(f"stopped ({summary}); {restarts} restarts")
+            supervisor.log(f"stopped ({summary}); {restarts} restarts")
         if supervisor.fatal is not None:
             raise CliError(supervisor.fatal)
     return 0
