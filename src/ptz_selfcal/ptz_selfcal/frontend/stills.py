@@ -22,12 +22,13 @@ set is useless as a prediction (their projective terms are the least constrained
 overlap).
 
 Each successful match (ratio test, MAGSAC + LM homography from frontend.features) is a KeyframeLink; every
-still is a keyframe. Same TrackResult interface as HomographyTracker, ids are still indices.
+still is a keyframe. Same TrackResult interface as HomographyTracker, ids are still indices. With the LSH
+matcher, track() reseeds the calling thread's OpenCV RNG (lsh_index): the indices are then the same on
+every run.
 """
 
 from __future__ import annotations
 
-import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -310,28 +311,15 @@ def lsh_index(
     descriptors: np.ndarray, tables: int = 6, key_bits: int = 12, probe: int = 1, seed: int = 0
 ) -> cv2.FlannBasedMatcher:
     """A FLANN LSH index over one still's binary descriptors (built once per still), the same on every
-    run. FLANN draws the hash tables' bits from OpenCV's RNG (cv::theRNG), which has no seed parameter
-    and whose state the Python API can set but not read back; it is per thread, so the index is built
-    on a short-lived thread of its own seeded with `seed`: the caller's OpenCV RNG is left untouched."""
+    run. FLANN draws the hash tables' bits from OpenCV's RNG of the calling thread (cv::theRNG), which
+    has no seed parameter and whose state cannot be read back: that RNG is seeded with `seed` here, so a
+    caller that draws from OpenCV's RNG itself builds the index on a thread of its own."""
     params = {"algorithm": 6, "table_number": tables, "key_size": key_bits, "multi_probe_level": probe}
-    built: list[cv2.FlannBasedMatcher | BaseException] = []
-
-    def build() -> None:
-        try:
-            cv2.setRNGSeed(seed)  # this thread's RNG only
-            index = cv2.FlannBasedMatcher(params, {"checks": 32})
-            index.add([descriptors])
-            index.train()  # the tables are drawn here; queries draw nothing
-            built.append(index)
-        except BaseException as exc:  # re-raised on the caller's thread
-            built.append(exc)
-
-    thread = threading.Thread(target=build, name="lsh_index", daemon=True)
-    thread.start()
-    thread.join()
-    if isinstance(built[0], BaseException):
-        raise built[0]
-    return built[0]
+    cv2.setRNGSeed(seed)
+    index = cv2.FlannBasedMatcher(params, {"checks": 32})
+    index.add([descriptors])
+    index.train()  # the tables are drawn here; queries draw nothing
+    return index
 
 
 def ratio_match(
