@@ -10,8 +10,7 @@ and answers "what were pan, tilt and zoom at this image stamp?":
   interpolation; pan and tilt along the shorter arc), or a sample lies within `max_hold` of it (a stamp
   just past the newest sample is extrapolated along the last two samples when they are no more than
   `max_gap` apart: holding the newest value would give a zooming head's frames a zoom up to max_hold
-  stale, 1.9 % in f on the synth bags, while waiting for the next sample would add an encoder period of
-  latency to every frame);
+  stale, while waiting for the next sample would add an encoder period of latency to every frame);
 - otherwise the state says why (NO_DATA, NOT_YET = the stamp is newer than the newest sample, so waiting
   may help, GAP = the bracketing samples are too far apart, TOO_OLD = older than anything retained) and
   the values are NaN.

@@ -15,9 +15,9 @@ The prediction: K has square pixels, the principal point at the centre and f fro
 (the linear method of section 3.3.2); each link's rotation is fitted to its inlier rays (orthogonal
 Procrustes) and the rotations are chained along the shortest path of links (fewest hops), so once a
 loop is closed the stills near both of its ends are a few links apart. Before that the path round the
-loop is long and the focal length poorly known (pan-only pairs: up to 22 % off AutoStitch's on the
-real sets, column f0 of benchmarks/stills_frontend.py), so stills `uncertain_hops` or more links away
-are predicted over a range of focal lengths as well. A product of raw homographies round a 360 degree
+loop is long and the focal length poorly known (pan-only pairs barely separate it from the rotation
+angle, the near-ambiguity of section 6.2.1), so stills `uncertain_hops` or more links away are
+predicted over a range of focal lengths as well. A product of raw homographies round a 360 degree
 set is useless as a prediction (their projective terms are the least constrained part of a narrow
 overlap).
 

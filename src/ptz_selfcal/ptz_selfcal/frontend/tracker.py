@@ -269,8 +269,8 @@ class HomographyTracker:
         (relocalisation then registers it). No descriptor homography: the fit stands (nothing against it).
         """
         H_desc = self._linker.descriptor_homography(keyframe, self._frame)
-        # the descriptor fit is not refined (ORB, 3 px USAC): ~10 px off at the image corners is normal,
-        # a wrong alias is a texture period (a window, a brick row: tens to hundreds of pixels)
+        # looser than a link: the descriptor fit is unrefined (3x the USAC threshold), while a wrong alias
+        # is off by a whole texture period (a window, a brick row)
         tolerance = 4.0 * self.config.link_tolerance(self._scale)
         if H_desc is None or max_deviation(fit.H, H_desc, image.shape) <= tolerance:
             return current, ok, fit
