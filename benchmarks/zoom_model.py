@@ -48,7 +48,7 @@ from ptz_selfcal.frontend.encoders import EncoderConfig, EncoderInterpolator
 from ptz_selfcal.nodes.conversions import MSG_TO_STATUS
 from ptz_selfcal.sim.render import ZoomEncoder
 from ptz_selfcal.tools.bagio import BagReader, deserialize
-from ptz_selfcal.zoom.model import ZoomModel, ZoomRate
+from ptz_selfcal.zoom import ZoomModel, ZoomRate
 
 ROOT = Path(__file__).resolve().parents[1]
 PANORAMA = ROOT / "bags" / "source" / "examplepano.jpg"

@@ -16,6 +16,7 @@ from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift, divi
 from ptz_selfcal.camera.geometry import intrinsic_matrix
 from ptz_selfcal.zoom import model as zm
 from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
+from ptz_selfcal.zoom.rate import ZoomRate
 
 W, H = 1280, 720
 SRC = str(Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal")
@@ -530,7 +531,7 @@ def test_encoder_lag_is_learned_from_zooming_in_and_out():
 
 
 def test_zoom_rate_from_frame_encoder_values():
-    rates = zm.ZoomRate()
+    rates = ZoomRate()
     t = np.arange(0.0, 1.0, 1.0 / 30.0)
     z = 100.0 + 600.0 * t
     z[10] = z[9]  # an encoder value held for one frame

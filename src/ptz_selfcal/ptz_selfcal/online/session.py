@@ -77,7 +77,7 @@ from ptz_selfcal.persist.state_files import (
     StateFileError,
     load_yaml_file,
 )
-from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError, ZoomRate
+from ptz_selfcal.zoom import ZoomModel, ZoomModelError, ZoomRate
 
 Array = NDArray[np.float64]
 

@@ -1,8 +1,8 @@
 """The learned zoom model: zoom encoder -> (f, principal point, k1, k2) with its uncertainty.
 
-What the calibrator learns while the camera zooms (DESIGN.md section 5.7) is summarised here so that a
-restarted calibrator, or a frame without a homography (tracking lost, status PREDICTED_FROM_ZOOM), gets
-a good K and D from the zoom encoder alone.
+What the calibrator learns while the camera zooms is summarised here so that a restarted calibrator,
+or a frame without a homography (tracking lost, status PREDICTED_FROM_ZOOM), gets a good K and D from
+the zoom encoder alone.
 
 - Bounded memory: samples are accumulated into zoom bins holding weighted running sums (count, sum w,
   sum w z, sum w q, sum w q^2 for q in log f, cx, cy, k1, k2). When more than `max_bins` bins are
@@ -29,7 +29,7 @@ a good K and D from the zoom encoder alone.
 - Weights: a sample's weight is 1 / sigma^2 of its log f (relative focal sigma from the bundle
   adjustment's Jacobian); keyframes the adjustment pins down poorly count little.
 - zoom -> log f: a MONOTONE penalised cubic B-spline (non-decreasing coefficients give a non-decreasing
-  spline; the system knows only that f grows with zoom, DESIGN.md section 3), weighted, made robust by
+  spline; all that is known of a lens is that f grows with zoom), weighted, made robust by
   Huber reweighting of the bins (a keyframe whose focal length is several sigma off its neighbours,
   e.g. one the adjustment has not converged on yet, is down-weighted). log f because zoom lenses are
   close to exponential in their drive position. Outside the covered range log f is extended linearly
@@ -42,19 +42,15 @@ a good K and D from the zoom encoder alone.
   common scale factor that averaging its keyframes does not remove. Other quantities: per bin, the
   standard error of the bin mean combined with the spline's misfit.
 - Visited range: [lowest, highest] zoom of the samples (committed and live); `in_range` says so.
-- Persistence: YAML with a format name and version, written atomically (temporary file in the same
-  directory, flush + fsync, os.replace, directory fsync); any unreadable or invalid file raises
-  ZoomModelError so the caller starts fresh.
+- Persistence: YAML with a format name and version, written atomically (persist.atomic_file); any
+  unreadable or invalid file raises ZoomModelError so the caller starts fresh. The camera_calibration
+  export (zoom.camera_calibration) writes K and D at chosen zooms for ROS tools.
 """
 
 from __future__ import annotations
 
-import contextlib
-import glob
 import math
 import os
-import re
-import time
 from collections.abc import Hashable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -63,10 +59,11 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline
-from scipy.optimize import lsq_linear
 
 from ptz_selfcal.camera.geometry import intrinsic_matrix
-from ptz_selfcal.persist.atomic_file import atomic_write_text
+from ptz_selfcal.persist.atomic_file import atomic_write_text, remove_stale_temporaries
+from ptz_selfcal.zoom.camera_calibration import write_camera_calibrations
+from ptz_selfcal.zoom.spline import design_matrix, penalised_spline
 
 Array = NDArray[np.float64]
 
@@ -97,123 +94,6 @@ class _Fit(NamedTuple):
     bin_sigma: dict[str, Array]  # per-bin 1-sigma of each quantity (fit + mean)
     log_f_cov: tuple[Array, Array, int, Array] | None  # knots, degree, coefficient covariance (scaled)
     offsets: dict[int, float]  # per calibration: its estimated log f scale offset (section 6.2)
-
-
-class _SplineFit(NamedTuple):
-    spline: BSpline
-    fitted: Array  # spline plus each point's group offset
-    robust_weights: Array  # Huber factors in (0, 1] per point (ones without reweighting)
-    covariance: Array  # of the spline coefficients, scaled by the reduced chi-square (NaN without dof)
-    dof: float  # points minus the effective number of parameters
-    offsets: Array  # per group (empty without groups)
-
-
-def _design(x: Array, knots: Array, degree: int) -> Array:
-    return BSpline.design_matrix(np.clip(x, knots[0], knots[-1]), knots, degree).toarray()
-
-
-def _penalised_spline(
-    z: Array,
-    y: Array,
-    w: Array,
-    n_basis: int,
-    smoothing: float,
-    monotone: bool,
-    huber: float | None = None,
-    groups: Array | None = None,
-    group_prior: Array | None = None,
-) -> _SplineFit:
-    """Weighted P-spline (second-difference penalty), optionally with non-decreasing coefficients,
-    Huber reweighting (threshold `huber` robust standard deviations of the weighted residuals) and one
-    additive offset per group (groups[i] in 0..G-1) with a zero-mean prior of weight group_prior[g]
-    (1 / sigma^2): y_i = s(z_i) + offset[groups[i]] + noise."""
-    degree = min(3, n_basis - 1)
-    lo, hi = float(z.min()), float(z.max())
-    interior = np.linspace(lo, hi, n_basis - degree + 1)[1:-1]
-    knots = np.concatenate([np.full(degree + 1, lo), interior, np.full(degree + 1, hi)])
-    B = _design(z, knots, degree)
-    n_groups = 0 if groups is None or group_prior is None else len(group_prior)
-    C = np.zeros((len(z), n_groups))
-    if n_groups:
-        C[np.arange(len(z)), np.asarray(groups, dtype=int)] = 1.0
-    # c = L p, p = (c0, increments): increments >= 0 makes the spline monotone
-    L = np.tril(np.ones((n_basis, n_basis))) if monotone else np.eye(n_basis)
-    D2 = np.diff(np.eye(n_basis), n=2, axis=0) if n_basis >= 3 else np.zeros((0, n_basis))
-    scale_w = float(w.mean())
-    prior = np.zeros(0) if not n_groups else np.asarray(group_prior, dtype=float) / scale_w
-    n_par = n_basis + n_groups
-    robust = np.ones_like(w)
-    for _ in range(8 if huber else 1):
-        sw = np.sqrt(w * robust / scale_w)
-        A = np.vstack(
-            [
-                np.hstack([(B * sw[:, None]) @ L, C * sw[:, None]]),
-                np.hstack([np.sqrt(smoothing) * D2 @ L, np.zeros((len(D2), n_groups))]),
-                np.hstack([np.zeros((n_groups, n_basis)), np.diag(np.sqrt(prior))]),
-            ]
-        )
-        b = np.concatenate([y * sw, np.zeros(len(D2) + n_groups)])
-        if monotone:
-            lower = np.full(n_par, -np.inf)
-            lower[1:n_basis] = 0.0
-            x = lsq_linear(A, b, bounds=(lower, np.full(n_par, np.inf)), method="bvls").x
-        else:
-            x = np.linalg.lstsq(A, b, rcond=None)[0]
-        c, offsets = L @ x[:n_basis], x[n_basis:]
-        if not huber:
-            break
-        r = np.abs(y - B @ c - C @ offsets) * np.sqrt(w)  # residuals in sigmas of each point
-        s = max(1.4826 * float(np.median(r)), 1e-12)
-        new = np.minimum(1.0, huber * s / np.maximum(r, 1e-300))
-        done = np.allclose(new, robust, atol=1e-3)
-        robust = new
-        if done:
-            break
-    fitted = B @ c + C @ offsets
-    # covariance of the (unconstrained) penalised estimate, (X'WX + penalty + prior)^-1 in absolute
-    # weights with X = [B C], scaled by the reduced chi-square (residual scatter against the weights);
-    # the spline block is what a prediction needs (the offsets marginalised)
-    wr = w * robust
-    X = np.hstack([B, C])
-    XtWX = X.T @ (X * wr[:, None])
-    P = np.zeros((n_par, n_par))
-    P[:n_basis, :n_basis] = smoothing * scale_w * D2.T @ D2
-    P[n_basis:, n_basis:] = np.diag(prior * scale_w)
-    try:
-        M_inv = np.linalg.inv(XtWX + P)
-        dof = len(z) - float(np.trace(M_inv @ XtWX))
-    except np.linalg.LinAlgError:
-        M_inv, dof = np.full((n_par, n_par), np.nan), 0.0
-    chi2 = float(np.sum(wr * (y - fitted) ** 2))
-    cov = M_inv[:n_basis, :n_basis] * (chi2 / dof) if dof > 0.5 else np.full((n_basis, n_basis), np.nan)
-    return _SplineFit(BSpline(knots, c, degree, extrapolate=False), fitted, robust, cov, dof, offsets)
-
-
-class ZoomRate:
-    """Zoom encoder rate (counts / s) at each frame: the least-squares slope of the frame zoom values
-    of the last `window` seconds (at least 3; else the backward difference to the previous one within
-    `max_gap`), so a held or repeated encoder value does not spike it. 0 when unknown."""
-
-    def __init__(self, window: float = 0.15, max_gap: float = 0.5) -> None:
-        self.window = window
-        self.max_gap = max_gap
-        self._recent: list[tuple[float, float]] = []
-
-    def update(self, stamp: float, zoom: float) -> float:
-        """Add this frame's (stamp s, zoom) and return the rate at it (NaN zoom: 0, history kept)."""
-        if not (math.isfinite(stamp) and math.isfinite(zoom)):
-            return 0.0
-        recent = [p for p in self._recent if 0.0 < stamp - p[0] <= self.max_gap]
-        recent.append((float(stamp), float(zoom)))
-        self._recent = recent
-        if len(recent) < 2:
-            return 0.0
-        window = np.array([p for p in recent if stamp - p[0] <= self.window])
-        if len(window) < 3:
-            (t0, z0), (t1, z1) = recent[-2], recent[-1]
-            return (z1 - z0) / (t1 - t0)
-        t = window[:, 0] - window[:, 0].mean()
-        return float(np.dot(t, window[:, 1] - window[:, 1].mean()) / max(float(np.dot(t, t)), 1e-12))
 
 
 class ZoomModel:
@@ -379,7 +259,7 @@ class ZoomModel:
             z = z_raw + tau * rate
             if z.max() - z.min() <= 0.0:
                 return math.inf
-            fit = _penalised_spline(z, y, w, n_basis, self.smoothing, monotone=True, huber=self.huber)
+            fit = penalised_spline(z, y, w, n_basis, self.smoothing, monotone=True, huber=self.huber)
             return float(np.sum(fit.robust_weights * w * (y - fit.fitted) ** 2))
 
         grid = np.linspace(-self.max_lag, self.max_lag, 21)
@@ -550,7 +430,7 @@ class ZoomModel:
                 fitted = np.full_like(y, constants[name])
             else:
                 log_f = name == "log_f"
-                fit = _penalised_spline(
+                fit = penalised_spline(
                     z,
                     y,
                     wq,
@@ -583,7 +463,7 @@ class ZoomModel:
             # scale (section 6.2) that averaging its keyframes does not remove, only averaging over
             # calibrations. Unit weights (sigma unknown, 1/w = 100%) add nothing.
             knots, cov, degree, _ = log_f_cov
-            B = _design(z, knots, degree)
+            B = design_matrix(z, knots, degree)
             fit_var = np.einsum("ij,jk,ik->i", B, cov, B)
             per_sample2 = n / w
             per_sample2 = np.where(per_sample2 < 0.25, per_sample2, 0.0) / len(cal_ids)
@@ -749,12 +629,10 @@ class ZoomModel:
         return model
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model atomically: temp file in the same directory, fsync, os.replace.
-
-        Temporary files left by a writer killed earlier (older than a minute) are removed first.
-        """
+        """Write the model atomically (persist.atomic_file), after removing the temporary files of
+        writers no longer running (a save killed half-way); a live writer's file is left alone."""
         path = Path(path)
-        _remove_stale_temporaries(path)
+        remove_stale_temporaries(path.parent)
         atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
 
     @classmethod
@@ -787,51 +665,8 @@ class ZoomModel:
         camera_name: str,
     ) -> list[Path]:
         """Per-zoom calibration files in the camera_calibration_parsers YAML format (one per zoom)."""
-        out_dir = Path(directory)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        paths = []
-        for zoom in zoom_values:
-            K, D, _, _ = self.predict(float(zoom))
-            text = camera_calibration_yaml(K, D, width, height, camera_name)
-            path = out_dir / f"{_safe_name(camera_name)}_zoom_{_safe_name(f'{float(zoom):g}')}.yaml"
-            atomic_write_text(path, text)
-            paths.append(path)
-        return paths
-
-
-def _safe_name(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.+-]", "_", text)
-
-
-def _matrix_yaml(name: str, rows: int, cols: int, data: Array) -> str:
-    values = ", ".join(f"{float(v):.10g}" for v in np.asarray(data, dtype=float).ravel())
-    return f"{name}:\n  rows: {rows}\n  cols: {cols}\n  data: [{values}]\n"
-
-
-def camera_calibration_yaml(K: Array, D: Array, width: int, height: int, camera_name: str) -> str:
-    """The text camera_calibration / camera_calibration_parsers write (R = I, P = [K | 0])."""
-    K = np.asarray(K, dtype=float)
-    P = np.hstack([K, np.zeros((3, 1))])
-    return (
-        f"image_width: {int(width)}\n"
-        f"image_height: {int(height)}\n"
-        f"camera_name: {camera_name}\n"
-        + _matrix_yaml("camera_matrix", 3, 3, K)
-        + "distortion_model: plumb_bob\n"
-        + _matrix_yaml("distortion_coefficients", 1, 5, np.asarray(D, dtype=float).ravel()[:5])
-        + _matrix_yaml("rectification_matrix", 3, 3, np.eye(3))
-        + _matrix_yaml("projection_matrix", 3, 4, P)
-    )
-
-
-def _remove_stale_temporaries(path: Path, age_s: float = 60.0) -> None:
-    if not path.parent.is_dir():
-        return
-    now = time.time()
-    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
-        with contextlib.suppress(OSError):
-            if now - tmp.stat().st_mtime > age_s:
-                tmp.unlink()
+        predictions = ((zoom, *self.predict(float(zoom))[:2]) for zoom in zoom_values)
+        return write_camera_calibrations(directory, predictions, width, height, camera_name)
 
 
 def fit_zoom_model(
