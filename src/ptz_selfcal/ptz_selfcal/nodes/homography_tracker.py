@@ -42,6 +42,7 @@ from ptz_selfcal.frontend.tracker import HomographyTracker, TrackResult
 from ptz_selfcal.frontend.tracker_config import TRACKER_CHOICES, TrackerConfig
 from ptz_selfcal.frontend.tracker_map import map_from_bytes, map_to_bytes
 from ptz_selfcal.nodes.conversions import (
+    TRACKING_STATE_TO_MSG,
     ConfigError,
     FrameError,
     Param,
@@ -54,7 +55,7 @@ from ptz_selfcal.nodes.conversions import (
 )
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal.persist.atomic_file import atomic_write_bytes, remove_stale_temporaries
-from ptz_selfcal.status import TrackingState
+from ptz_selfcal.status import KEYFRAME_STATES, LOST_STATES, TrackingState
 from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
 
 PARAMS = [
@@ -96,16 +97,8 @@ PARAMS = [
     ),
 ]
 
-_STATE = {
-    TrackingState.TRACKING: HomographyStamped.TRACKING,
-    TrackingState.NEW_KEYFRAME: HomographyStamped.NEW_KEYFRAME,
-    TrackingState.RELOCALISED: HomographyStamped.RELOCALISED,
-    TrackingState.TRACKING_LOST: HomographyStamped.TRACKING_LOST,
-    TrackingState.TEXTURELESS: HomographyStamped.TEXTURELESS,
-}
 _IDENTITY = np.eye(3).ravel()
 MAP_FILE = "tracker_map.npz"
-_MAP_STATES = (TrackingState.NEW_KEYFRAME, TrackingState.RELOCALISED)  # the states that add a keyframe
 # TrackerConfig fields the node does not expose (frame_ingest chooses the working scale).
 _NOT_PARAMETERS = {"working_scale"}
 _FRACTIONS = {"ratio", "fraction", "overlap", "level", "confidence"}  # name words of (0, 1] values
@@ -184,7 +177,7 @@ class HomographyTrackerNode(Node):
         self._map_keyframe_id: int | None = None  # keyframe of the last result (a change: save the map)
         self._keyframe_stamps: dict[int, tuple[Time, str]] = {}
         self._reference: tuple[Time, str] | None = None
-        self._state_counts: Counter[str] = Counter()
+        self._state_counts: Counter[TrackingState] = Counter()
 
         qos = reliable_qos() if p["queue_policy"] == "lossless" else reliable_qos(p["queue_depth"])
         self._pub = self.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
@@ -329,7 +322,7 @@ class HomographyTrackerNode(Node):
         moved = result.keyframe_id is not None and result.keyframe_id != self._map_keyframe_id
         self._map_keyframe_id = result.keyframe_id
         self._counts["keyframe_changes"] += int(moved)
-        if self._saver is not None and (result.state in _MAP_STATES or moved):
+        if self._saver is not None and (result.state in KEYFRAME_STATES or moved):
             self._queue_map_save()
 
     def _publish(self, frame: IngestedFrame, result: TrackResult | None) -> None:
@@ -350,20 +343,12 @@ class HomographyTrackerNode(Node):
                 self._prune_keyframe_stamps()
             if result.reference_id is not None:
                 self._reference = self._keyframe_stamps.get(result.reference_id, self._reference)
-        state = HomographyStamped.TRACKING_LOST if result is None else _STATE[result.state]
-        if (
-            H is None
-            or not np.all(np.isfinite(H))
-            or state
-            in (
-                HomographyStamped.TRACKING_LOST,
-                HomographyStamped.TEXTURELESS,
-            )
-        ):
+        state = TrackingState.TRACKING_LOST if result is None else result.state
+        if H is None or not np.all(np.isfinite(H)) or state in LOST_STATES:
             if H is not None and not np.all(np.isfinite(H)):
                 self._warn_once("non_finite_homography", "the tracker returned a non-finite homography")
-            if state not in (HomographyStamped.TRACKING_LOST, HomographyStamped.TEXTURELESS):
-                state = HomographyStamped.TRACKING_LOST
+            if state not in LOST_STATES:
+                state = TrackingState.TRACKING_LOST
             out.h = _IDENTITY.copy()
             out.inlier_count = 0
             out.match_count = 0 if result is None else int(result.match_count)
@@ -374,12 +359,12 @@ class HomographyTrackerNode(Node):
             out.match_count = int(result.match_count)
             rms = float(result.rms_transfer_error)
             out.rms_transfer_error = rms if math.isfinite(rms) else 0.0
-        out.state = state
+        out.state = TRACKING_STATE_TO_MSG[state]
         if result is not None and result.keyframe_id is not None:
             out.keyframe_id = int(result.keyframe_id)
         if self._reference is not None:
             out.reference_stamp, out.reference_frame_id = self._reference
-        self._state_counts[_state_name(state)] += 1
+        self._state_counts[state] += 1
         self._send(self._pub, out)
         self._counts["frames_out"] += 1
         if result is not None:
@@ -443,7 +428,7 @@ class HomographyTrackerNode(Node):
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
         status.hardware_id = topics.CAMERA_FRAME_ID
-        lost = self._state_counts.get("TRACKING_LOST", 0) + self._state_counts.get("TEXTURELESS", 0)
+        lost = sum(self._state_counts[state] for state in LOST_STATES)
         status.level = DiagnosticStatus.OK
         status.message = f"{counters['frames_out']} frames tracked ({lost} lost or textureless)"
         if self._counts.get("tracker_error") or self._counts.get("frames_dropped"):
@@ -453,16 +438,6 @@ class HomographyTrackerNode(Node):
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
         self._diag_pub.publish(array)
-
-
-def _state_name(state: int) -> str:
-    return {
-        HomographyStamped.TRACKING: "TRACKING",
-        HomographyStamped.NEW_KEYFRAME: "NEW_KEYFRAME",
-        HomographyStamped.RELOCALISED: "RELOCALISED",
-        HomographyStamped.TRACKING_LOST: "TRACKING_LOST",
-        HomographyStamped.TEXTURELESS: "TEXTURELESS",
-    }.get(state, str(state))
 
 
 def main(args: list[str] | None = None) -> int:
