@@ -6,11 +6,12 @@ tracking is lost or the frame is unusable: then the state is TRACKING_LOST or TE
 identity and inlier_count 0. New keyframes (and relocalisations) publish their keyframe links as
 KeyframeMatches on topics.KEYFRAMES. reference_frame_id/reference_stamp name the reference keyframe's
 image (the map's origin: it changes when the tracker starts a new map). Tracker settings are the
-parameters `tracker.<field>` of frontend/tracker.TrackerConfig.
+parameters `tracker.<field>` of frontend/tracker_config.TrackerConfig.
 
-State: with `state_dir` set, the keyframe map (frontend/tracker export_map, with the keyframes' header stamps)
-is saved atomically to state_dir/tracker_map.npz by a background thread whenever it changed (a new
-keyframe or relocalisation), at most once per `save_period`, and on shutdown. At start the saved map is
+State: with `state_dir` set, the keyframe map (HomographyTracker.export_map in frontend/tracker_map's file
+format, with the keyframes' header stamps) is saved atomically to state_dir/tracker_map.npz by a
+background thread whenever it changed (a new keyframe, a relocalisation or a revisit), at most once per
+`save_period`, and on shutdown. At start the saved map is
 loaded: the tracker begins lost and relocalises its first frames against the stored keyframes, so after a
 restart (kill -9, crash) it keeps the same reference (reference_frame_id/reference_stamp) and keyframe
 ids, and the calibrator continues its calibration. An unreadable or corrupt file: a warning, a new map.
@@ -129,7 +130,7 @@ def tracker_params() -> list[Param]:
         default = getattr(defaults, f.name)
         if isinstance(default, tuple):
             default = list(default)
-        description = comments.get(f.name, f"TrackerConfig.{f.name} (frontend/tracker.py)")
+        description = comments.get(f.name, f"TrackerConfig.{f.name} (frontend/tracker_config.py)")
         params.append(Param(f"tracker.{f.name}", default, description, _tracker_check(f.name, default)))
     return params
 
