@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ptz_selfcal.online import session as cs
 from ptz_selfcal.persist.atomic_file import TEMP_SUFFIX, atomic_write_text, remove_stale_temporaries
+from ptz_selfcal.persist.state_files import STATE_FILE
 
 SRC = str(Path(cs.__file__).resolve().parents[2])
 
@@ -35,7 +36,7 @@ def kill_during_save(state_dir: Path) -> Path:
             print("written", flush=True)
             time.sleep(60)
         atomic_file.os.replace = hang
-        atomic_file.atomic_write_text({str(state_dir / cs.STATE_FILE)!r}, "calibrator: new\\n")
+        atomic_file.atomic_write_text({str(state_dir / STATE_FILE)!r}, "calibrator: new\\n")
         """
     )
     proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, text=True)
@@ -43,7 +44,7 @@ def kill_during_save(state_dir: Path) -> Path:
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(10)
     (tmp,) = [p for p in state_dir.iterdir() if p.name.endswith(TEMP_SUFFIX)]
-    assert tmp.name.startswith(f".{cs.STATE_FILE}.{proc.pid}."), tmp.name
+    assert tmp.name.startswith(f".{STATE_FILE}.{proc.pid}."), tmp.name
     return tmp
 
 
@@ -52,16 +53,16 @@ def test_temporary_of_a_killed_save_is_removed_at_the_next_state_load(tmp_path: 
         cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0), state_dir=tmp_path
     )
     session.save()
-    saved = (tmp_path / cs.STATE_FILE).read_bytes()
+    saved = (tmp_path / STATE_FILE).read_bytes()
     tmp = kill_during_save(tmp_path)
-    assert (tmp_path / cs.STATE_FILE).read_bytes() == saved  # the kill left the old state in place
+    assert (tmp_path / STATE_FILE).read_bytes() == saved  # the kill left the old state in place
     restarted = cs.CalibratorSession(
         cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0), state_dir=tmp_path
     )
     messages = restarted.restore()
     assert not tmp.exists()
     assert any(str(tmp) in m and "interrupted by a kill" in m for m in messages), messages
-    assert sorted(p.name for p in tmp_path.iterdir()) == [cs.STATE_FILE]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [STATE_FILE]
 
 
 def test_only_temporaries_of_writers_that_are_gone_are_removed(tmp_path: Path) -> None:

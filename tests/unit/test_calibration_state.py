@@ -8,9 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation, rotation_angle
+from ptz_selfcal.camera.geometry import (
+    apply_homography,
+    image_motion,
+    intrinsic_matrix,
+    ptz_rotation,
+    rotation_angle,
+)
 from ptz_selfcal.online import session as cs
-from ptz_selfcal.online.incremental import image_motion
+from ptz_selfcal.persist.atomic_file import atomic_write_text
+from ptz_selfcal.persist.state_files import STATE_FILE, ZOOM_MODEL_FILE
+from ptz_selfcal.status import CalibrationStatus as S
 
 WIDTH, HEIGHT = 1280, 720
 PP = (639.5 + 15.0, 359.5 - 10.0)
@@ -69,9 +77,9 @@ def calibrated() -> tuple[cs.CalibratorSession, np.ndarray, np.ndarray, np.ndarr
 def test_converges_on_exact_geometry_and_statuses_progress(calibrated) -> None:
     session, K, _, _, outs = calibrated
     statuses = [o.status for o in outs]
-    assert statuses[0] == cs.INITIALISING
-    assert statuses[-1] == cs.CONVERGED
-    first = statuses.index(cs.CALIBRATING) if cs.CALIBRATING in statuses else statuses.index(cs.CONVERGED)
+    assert statuses[0] == S.INITIALISING
+    assert statuses[-1] == S.CONVERGED
+    first = statuses.index(S.CALIBRATING) if S.CALIBRATING in statuses else statuses.index(S.CONVERGED)
     assert first < 60
     late = outs[-30:]
     err = [abs(o.K[0, 0] / K[len(outs) - 30 + i][0, 0] - 1) for i, o in enumerate(late)]
@@ -87,10 +95,10 @@ def test_tracking_lost_uses_zoom_model_then_last_good(calibrated) -> None:
     j = 70
     lost = cs.FrameInput(1e3, None, "TRACKING_LOST", WIDTH, HEIGHT, zoom=float(f[j]))
     out = session.process(lost)
-    assert out.status == cs.PREDICTED_FROM_ZOOM
+    assert out.status == S.PREDICTED_FROM_ZOOM
     assert abs(out.K[0, 0] / K[j][0, 0] - 1) < 0.02
     out = session.process(cs.FrameInput(1e3, None, "TEXTURELESS", WIDTH, HEIGHT))  # no zoom encoder
-    assert out.status == cs.TRACKING_LOST and out.source == "last_good"
+    assert out.status == S.TRACKING_LOST and out.source == "last_good"
     assert np.all(np.isfinite(out.K))
 
 
@@ -107,7 +115,7 @@ def test_garbage_homographies_are_counted_and_still_answered(calibrated) -> None
             cs.FrameInput(2e3, H, "TRACKING", WIDTH, HEIGHT, keyframe_id=8, reference_id="ref")
         )
         assert np.all(np.isfinite(out.K)) and out.K[0, 0] > 0
-        assert out.status in (cs.PREDICTED_FROM_ZOOM, cs.TRACKING_LOST)
+        assert out.status in (S.PREDICTED_FROM_ZOOM, S.TRACKING_LOST)
     assert session.counters["invalid_homographies"] == before + 4
 
 
@@ -115,7 +123,7 @@ def test_save_restore_and_corrupt_files(calibrated, tmp_path: Path) -> None:
     session, K, H, f, _ = calibrated
     session.state_dir = tmp_path
     written = session.save()
-    assert {Path(p).name for p in written} == {cs.STATE_FILE, cs.ZOOM_MODEL_FILE}
+    assert {Path(p).name for p in written} == {STATE_FILE, ZOOM_MODEL_FILE}
     assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
 
     restored = cs.CalibratorSession(
@@ -128,14 +136,14 @@ def test_save_restore_and_corrupt_files(calibrated, tmp_path: Path) -> None:
     out = restored.process(
         cs.FrameInput(5.0, H[j], "TRACKING", WIDTH, HEIGHT, keyframe_id=96, reference_id="ref")
     )
-    assert out.status in (cs.CALIBRATING, cs.CONVERGED)
+    assert out.status in (S.CALIBRATING, S.CONVERGED)
     assert abs(out.K[0, 0] / K[j][0, 0] - 1) < 2e-3
     # a restarted calibrator with lost tracking predicts from the saved zoom model at once
     out = restored.process(cs.FrameInput(6.0, None, "TRACKING_LOST", WIDTH, HEIGHT, zoom=float(f[j])))
-    assert out.status == cs.PREDICTED_FROM_ZOOM and abs(out.K[0, 0] / K[j][0, 0] - 1) < 0.02
+    assert out.status == S.PREDICTED_FROM_ZOOM and abs(out.K[0, 0] / K[j][0, 0] - 1) < 0.02
 
-    (tmp_path / cs.STATE_FILE).write_text("calibrator: [unclosed\n")
-    (tmp_path / cs.ZOOM_MODEL_FILE).write_bytes(b"\x00\xff garbage")
+    (tmp_path / STATE_FILE).write_text("calibrator: [unclosed\n")
+    (tmp_path / ZOOM_MODEL_FILE).write_bytes(b"\x00\xff garbage")
     fresh = cs.CalibratorSession(
         cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0), state_dir=tmp_path
     )
@@ -144,19 +152,19 @@ def test_save_restore_and_corrupt_files(calibrated, tmp_path: Path) -> None:
     out = fresh.process(
         cs.FrameInput(7.0, H[j], "TRACKING", WIDTH, HEIGHT, keyframe_id=96, reference_id="ref")
     )
-    assert out.status == cs.INITIALISING
+    assert out.status == S.INITIALISING
 
 
 def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path: Path, monkeypatch) -> None:
     path = tmp_path / "state.yaml"
-    cs.atomic_write_text(path, "old: 1\n")
+    atomic_write_text(path, "old: 1\n")
 
     def fail(*_args, **_kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(cs.os, "replace", fail)
+    monkeypatch.setattr(os, "replace", fail)
     with pytest.raises(OSError):
-        cs.atomic_write_text(path, "new: 2\n")
+        atomic_write_text(path, "new: 2\n")
     assert path.read_text() == "old: 1\n"
     assert os.listdir(tmp_path) == ["state.yaml"]
 
@@ -167,8 +175,8 @@ def test_pan_only_is_degenerate() -> None:
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
     outs = feed(session, H, f, every=6)
-    assert outs[-1].status == cs.DEGENERATE_MOTION
-    assert cs.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].status == S.DEGENERATE_MOTION
+    assert S.CONVERGED not in {o.status for o in outs}
     assert outs[-1].sigma_f > 0.1 * outs[-1].K[0, 0]
 
 
@@ -179,7 +187,7 @@ def test_reference_change_restarts_the_calibration(calibrated) -> None:
         cs.FrameInput(9.0, np.eye(3), "NEW_KEYFRAME", WIDTH, HEIGHT, 500, "new_map", float(f[0]))
     )
     assert session.counters["reference_changes"] == before + 1
-    assert out.status == cs.INITIALISING
+    assert out.status == S.INITIALISING
     assert out.source == "zoom_model"  # the learned zoom model is the prior of the new map
 
 
@@ -201,19 +209,19 @@ def frame_at(t: float, H: np.ndarray, zoom: float, kid: int, keyframe: bool = Fa
 
 
 def keyframe_ids(session: cs.CalibratorSession) -> set[int]:
-    return {int(kf.keyframe_id) for kf in session.calibrator.keyframes}
+    return {int(kf.keyframe_id) for kf in session.calibration.calibrator.keyframes}
 
 
 def test_zoom_gate_refuses_a_wrong_homography_and_keeps_the_calibration(gated) -> None:
     session, K, H, f = gated
-    assert session.state == cs.CONVERGED and session._snapshot.zoom_table is not None
+    assert session.state == S.CONVERGED and session.snapshot.zoom_table is not None
     j, t = 100, 10.0  # zoom 1.7x, inside the learned range (1x..2.5x), held still below
     truth = K[j][1, 1]
     for i in range(3):  # good frames pass (K from the homography)
         out = session.process(frame_at(t + i / 30, H[j], f[j], 96))
-        assert out.status == cs.CONVERGED and out.source == "calibration"
+        assert out.status == S.CONVERGED and out.source == "calibration"
         assert abs(out.K[1, 1] / truth - 1) < 1e-3
-    K_ref = session.calibrator.reference_K.copy()
+    K_ref = session.calibration.calibrator.reference_K.copy()
     solved_ids = keyframe_ids(session)
     counters = dict(session.counters)
     # a tracker failure: the right view at the wrong image scale (implies f 25 % too long, eq. 20)
@@ -225,7 +233,7 @@ def test_zoom_gate_refuses_a_wrong_homography_and_keeps_the_calibration(gated) -
     assert session.counters["unconfirmed_keyframes"] == counters["unconfirmed_keyframes"] + 1
     # the wrong scale persists at a still zoom: refused, K from the zoom model
     outs = [session.process(frame_at(t + i / 30, wrong, f[j], 1000 + i, keyframe=True)) for i in (1, 2)]
-    assert all(o.status == cs.PREDICTED_FROM_ZOOM and o.source == "zoom_model" for o in outs)
+    assert all(o.status == S.PREDICTED_FROM_ZOOM and o.source == "zoom_model" for o in outs)
     assert all(abs(o.K[1, 1] / truth - 1) < 0.02 for o in outs)
     assert session.counters["zoom_gate_rejections"] == counters["zoom_gate_rejections"] + 2
     # their keyframe matches stay out of the adjustment, and nothing of them reaches the solve
@@ -234,19 +242,19 @@ def test_zoom_gate_refuses_a_wrong_homography_and_keeps_the_calibration(gated) -
     assert session.add_keyframe_matches(1002, 96, apply_homography(wrong @ np.linalg.inv(H[96]), x), x)
     session.step(5.0)
     assert keyframe_ids(session) == solved_ids
-    assert not any(max(pair) >= 1000 for pair in session.matches)
-    assert np.array_equal(session.calibrator.reference_K, K_ref)
+    assert not any(max(pair) >= 1000 for pair in session.calibration.matches)
+    assert np.array_equal(session.calibration.calibrator.reference_K, K_ref)
     # the right homography again: calibrated from it (held back once: the image zoomed back), then a
     # good keyframe at the still zoom passes the gate and joins the solve
     t += 0.5
     for i in range(3):
         out = session.process(frame_at(t + i / 30, H[j], f[j], 96))
-        assert out.status == cs.CONVERGED and abs(out.K[1, 1] / truth - 1) < 1e-3
+        assert out.status == S.CONVERGED and abs(out.K[1, 1] / truth - 1) < 1e-3
     out = session.process(frame_at(t + 0.1, H[j], f[j], 1010, keyframe=True))
-    assert out.status == cs.CONVERGED and abs(out.K[1, 1] / truth - 1) < 1e-3
+    assert out.status == S.CONVERGED and abs(out.K[1, 1] / truth - 1) < 1e-3
     session.step(5.0)
     assert 1010 in keyframe_ids(session)
-    assert abs(session.calibrator.reference_K[1, 1] / K[0][1, 1] - 1) < 2e-3
+    assert abs(session.calibration.calibrator.reference_K[1, 1] / K[0][1, 1] - 1) < 2e-3
 
 
 def test_keyframes_of_a_fast_move_stay_out_of_the_solve_but_are_calibrated(gated) -> None:
@@ -260,7 +268,7 @@ def test_keyframes_of_a_fast_move_stay_out_of_the_solve_but_are_calibrated(gated
     for kid, dt in ((2000, 1 / 30), (2001, 0.5)):  # a preset recall, then the same move in 0.5 s
         session.process(frame_at(t, H[j], f[j], 96))
         out = session.process(frame_at(t + dt, pan, f[j], kid, keyframe=True))
-        assert out.status == cs.CONVERGED and abs(out.K[1, 1] / K[j][1, 1] - 1) < 1e-3
+        assert out.status == S.CONVERGED and abs(out.K[1, 1] / K[j][1, 1] - 1) < 1e-3
         t += 1.0
     assert moved / (1 / 30) > fast > moved / 0.5
     assert session.counters["fast_motion_keyframes"] == before + 1
@@ -285,14 +293,14 @@ def test_fixed_lens_pan_only_converges_to_the_truth(tmp_path: Path) -> None:
     session = cs.CalibratorSession(fixed_lens_config(), state_dir=tmp_path)
     outs = feed(session, H, f, every=6)
     statuses = [o.status for o in outs]
-    assert cs.DEGENERATE_MOTION not in statuses
-    assert statuses[-1] == cs.CONVERGED
-    converged = [o for o in outs if o.status == cs.CONVERGED]
+    assert S.DEGENERATE_MOTION not in statuses
+    assert statuses[-1] == S.CONVERGED
+    converged = [o for o in outs if o.status == S.CONVERGED]
     for o in converged:
         assert abs(o.K[1, 1] / 1000.0 - 1.0) < 1e-3 and np.hypot(*(o.K[:2, 2] - PP)) < 2.0
         assert o.K[0, 0] == o.K[1, 1] and o.K[0, 1] == 0.0 and np.all(o.D == 0.0) and o.R is not None
         assert o.sigma_f < 0.01 * o.K[1, 1]
-    ref = session.calibrator.reference_K
+    ref = session.calibration.calibrator.reference_K
     assert abs(ref[1, 1] / 1000.0 - 1.0) < 1e-3
     # one K for every image (whatever its homography says), the orientation from its homography
     for j in (13, 40, 57):
@@ -315,7 +323,7 @@ def test_pan_only_with_a_zooming_model_says_why() -> None:
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
     outs = feed(session, H, f, every=6)
-    assert outs[-1].status == cs.DEGENERATE_MOTION and "single axis" in outs[-1].message
+    assert outs[-1].status == S.DEGENERATE_MOTION and "single axis" in outs[-1].message
 
 
 def test_focal_model_is_validated() -> None:
@@ -364,11 +372,11 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
     session = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
     outs = feed_distorted(session, K, H, lam)
-    assert outs[-1].status == cs.CALIBRATING and "radial term" in outs[-1].message
-    assert session.solver.lens_model_change > 0.02
-    ref = session.calibrator.reference_K
+    assert outs[-1].status == S.CALIBRATING and "radial term" in outs[-1].message
+    assert session.calibration.solver.measure_lens_model_change() > 0.02
+    ref = session.calibration.calibrator.reference_K
     assert abs(ref[1, 1] / 1000.0 - 1.0) < 2e-3 and np.hypot(*(ref[:2, 2] - PP)) < 2.0
-    assert abs(session.solver.shared_lam / lam - 1.0) < 0.02
+    assert abs(session.calibration.solver.shared_lam / lam - 1.0) < 0.02
     k1, k2 = division_to_plumb_bob(lam, K[0], WIDTH, HEIGHT)
     D = outs[-1].D
     assert abs(D[0] / k1 - 1.0) < 0.05 and np.all(D[2:] == 0.0), (D, k1, k2)
@@ -376,11 +384,13 @@ def test_fixed_lens_estimates_one_distortion_coefficient() -> None:
     restored = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
     restored.load_dict(session.to_dict())
     out = restored.process(cs.FrameInput(99.0, H[30], "TRACKING", WIDTH, HEIGHT, 30, "ref"))
-    assert restored.solver.shared_lam == session.solver.shared_lam and np.allclose(out.D, D)
+    assert restored.calibration.solver.shared_lam == session.calibration.solver.shared_lam and np.allclose(
+        out.D, D
+    )
     unchecked = cs.CalibratorSession(
         fixed_lens_config(estimate_distortion=True, converged_max_lens_model_change=1.0)
     )
-    assert feed_distorted(unchecked, K, H, lam)[-1].status == cs.CONVERGED
+    assert feed_distorted(unchecked, K, H, lam)[-1].status == S.CONVERGED
 
 
 def test_fixed_lens_solves_start_from_the_previous_adjustment() -> None:
@@ -392,21 +402,21 @@ def test_fixed_lens_solves_start_from_the_previous_adjustment() -> None:
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
     session = cs.CalibratorSession(fixed_lens_config(estimate_distortion=True))
     feed_distorted(session, K, H[:55], lam)  # (H[60] is the identity, i.e. the reference's)
-    calibrator = session.calibrator
+    calibrator = session.calibration.calibrator
     assert calibrator.last_solve.method.startswith("warm+")
     # solved again with the prior weighed by the same noise estimate (eq. 27), once warm, once from LM
     calibrator.reoptimise()
     assert calibrator.last_solve.method.startswith("warm+")
-    warm_K, warm_lam = calibrator.reference_K, session.solver.shared_lam
-    sigma_f, sigma_lam = calibrator.last_solve.sigma_f_ref, session.solver.sigma_shared_lam
-    session.solver._warm = None
+    warm_K, warm_lam = calibrator.reference_K, session.calibration.solver.shared_lam
+    sigma_f, sigma_lam = calibrator.last_solve.sigma_f_ref, session.calibration.solver.sigma_shared_lam
+    session.calibration.solver.forget_warm_start()
     calibrator.reoptimise()
     assert calibrator.last_solve.method.startswith("lm_")
     cold_K = calibrator.reference_K
     # both stop within a small fraction of a sigma of the minimum (SessionConfig.ba_tolerance)
     assert abs(warm_K[1, 1] - cold_K[1, 1]) < 0.05 * sigma_f
     assert np.hypot(*(warm_K[:2, 2] - cold_K[:2, 2])) < 0.05 * sigma_f
-    assert abs(warm_lam - session.solver.shared_lam) < 0.05 * sigma_lam
+    assert abs(warm_lam - session.calibration.solver.shared_lam) < 0.05 * sigma_lam
 
 
 def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
@@ -419,12 +429,12 @@ def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
     plain = cs.CalibratorSession(fixed_lens_config())
     outs = feed_distorted(plain, K, H, lam)
-    f = plain.calibrator.reference_K[1, 1]
+    f = plain.calibration.calibrator.reference_K[1, 1]
     assert abs(f / 1000.0 - 1.0) > 5e-3
-    assert cs.CONVERGED not in {o.status for o in outs}
-    assert outs[-1].status == cs.CALIBRATING and "radial term" in outs[-1].message
+    assert S.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].status == S.CALIBRATING and "radial term" in outs[-1].message
     unchecked = cs.CalibratorSession(fixed_lens_config(converged_max_lens_model_change=1.0))
-    assert feed_distorted(unchecked, K, H, lam)[-1].status == cs.CONVERGED
+    assert feed_distorted(unchecked, K, H, lam)[-1].status == S.CONVERGED
 
 
 def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> None:
@@ -433,9 +443,9 @@ def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> No
     _, H, f = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
     session = cs.CalibratorSession(fixed_lens_config(converged_max_sigma_f=1e-9))
     outs = feed(session, H, f, every=6)
-    assert cs.CONVERGED not in {o.status for o in outs}
-    assert outs[-1].status == cs.CALIBRATING and "1-sigma of f" in outs[-1].message
-    assert session.calibrator.state.value == cs.CONVERGED  # the solver itself is stable
+    assert S.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].status == S.CALIBRATING and "1-sigma of f" in outs[-1].message
+    assert session.calibration.calibrator.state.value == S.CONVERGED  # the solver itself is stable
 
 
 def test_initialising_says_why() -> None:
@@ -448,7 +458,7 @@ def test_initialising_says_why() -> None:
         kf = cs.FrameInput(j * 1e-3, H[j], "NEW_KEYFRAME", WIDTH, HEIGHT, j, "ref", float(f[j]))
         outs.append(session.process(kf))
         session.step(5.0)
-    assert {o.status for o in outs} == {cs.INITIALISING}
+    assert {o.status for o in outs} == {S.INITIALISING}
     assert " of min_keyframes 4 keyframes" in outs[-1].message
     assert "held out of the solve" in outs[-1].message and "max_keyframe_motion" in outs[-1].message
 
@@ -474,8 +484,8 @@ def test_map_prior_is_weighed_with_the_measured_image_noise(seed: int) -> None:
         cs.SessionConfig(nominal_hfov_deg=30.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
     outs = feed(session, H, f, seed=seed)
-    assert outs[-1].status == cs.CONVERGED
-    assert 0.1 < session.solver.noise_estimate < 0.2
+    assert outs[-1].status == S.CONVERGED
+    assert 0.1 < session.calibration.solver.noise_estimate < 0.2
     assert np.hypot(*(outs[-1].K[:2, 2] - PP)) < 8.0
 
 
@@ -483,7 +493,7 @@ def test_restore_refuses_another_focal_model_and_keeps_the_noise_weight(calibrat
     session = calibrated[0]
     session.state_dir = tmp_path
     session.save()
-    assert session.solver.noise_estimate is not None
+    assert session.calibration.solver.noise_estimate is not None
     fixed = cs.CalibratorSession(
         cs.SessionConfig(
             nominal_hfov_deg=50.0, focal_model="constant", min_solve_period_s=0.0, max_solve_duty=1.0
@@ -492,10 +502,10 @@ def test_restore_refuses_another_focal_model_and_keeps_the_noise_weight(calibrat
     fixed.state_dir = tmp_path
     messages = fixed.restore()
     assert any(m.startswith("WARNING") and "focal_model" in m for m in messages), messages
-    assert fixed.calibrator is None  # starts fresh: a zoom lens's keyframes are not one K
+    assert fixed.calibration.calibrator is None  # starts fresh: a zoom lens's keyframes are not one K
     same = cs.CalibratorSession(
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
         state_dir=tmp_path,
     )
     same.restore()
-    assert same.solver.noise_estimate == pytest.approx(session.solver.noise_estimate)
+    assert same.calibration.solver.noise_estimate == pytest.approx(session.calibration.solver.noise_estimate)

@@ -14,6 +14,8 @@ import yaml
 
 from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift, division_to_plumb_bob
 from ptz_selfcal.camera.geometry import intrinsic_matrix
+from ptz_selfcal.persist.state_files import STATE_FILE
+from ptz_selfcal.status import CalibrationStatus as S
 from ptz_selfcal.zoom import model as zm
 from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
 from ptz_selfcal.zoom.rate import ZoomRate
@@ -425,29 +427,36 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
         state_dir=tmp_path,
     )
     feed(first, H, f)
-    learned = first.zoom_model.sample_count
-    assert learned >= 8 and first.zoom_model.live_count == learned  # the calibration's keyframes
+    learned = first.calibration.zoom_model.sample_count
+    assert learned >= 8 and first.calibration.zoom_model.live_count == learned  # the calibration's keyframes
     first.save()
-    (tmp_path / cs.STATE_FILE).unlink()  # the calibration is not restored: a fresh one starts
+    (tmp_path / STATE_FILE).unlink()  # the calibration is not restored: a fresh one starts
     second = cs.CalibratorSession(
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
         state_dir=tmp_path,
     )
     messages = second.restore()
     assert any("loaded zoom model" in m for m in messages), messages
-    assert second.zoom_model.live_count == 0 and second.zoom_model.sample_count == learned
+    assert (
+        second.calibration.zoom_model.live_count == 0
+        and second.calibration.zoom_model.sample_count == learned
+    )
     # first frame after the restart, tracking lost: K from the saved model within 1%
     out = second.process(cs.FrameInput(0.0, None, "TRACKING_LOST", CS_W, CS_H, zoom=float(f[60])))
-    assert out.status == cs.PREDICTED_FROM_ZOOM and abs(out.K[0, 0] / K[60][0, 0] - 1.0) < 0.01
+    assert out.status == S.PREDICTED_FROM_ZOOM and abs(out.K[0, 0] / K[60][0, 0] - 1.0) < 0.01
     feed(second, H, f)
-    assert second.zoom_model.sample_count >= learned + 8  # history plus the new calibration
-    assert second.zoom_model.live_count == second.zoom_model.sample_count - learned
+    assert second.calibration.zoom_model.sample_count >= learned + 8  # history plus the new calibration
+    assert second.calibration.zoom_model.live_count == second.calibration.zoom_model.sample_count - learned
     for j in (10, 60, 110):
-        assert second.zoom_model.predict(float(f[j])).K[0, 0] == pytest.approx(K[j][0, 0], rel=5e-3)
-    total = second.zoom_model.sample_count
+        assert second.calibration.zoom_model.predict(float(f[j])).K[0, 0] == pytest.approx(
+            K[j][0, 0], rel=5e-3
+        )
+    total = second.calibration.zoom_model.sample_count
     second.process(cs.FrameInput(9.0, H[5], "TRACKING", CS_W, CS_H, keyframe_id=0, reference_id="other"))
     second.step(0.0)  # a new reference: the calibration is reset, its keyframes become history
-    assert second.zoom_model.live_count == 0 and second.zoom_model.sample_count == total
+    assert (
+        second.calibration.zoom_model.live_count == 0 and second.calibration.zoom_model.sample_count == total
+    )
 
 
 def test_each_calibration_has_its_own_scale_error_levelled_where_they_overlap():

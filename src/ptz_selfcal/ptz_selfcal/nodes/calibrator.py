@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import math
 import sys
-import threading
-import time
 import traceback
 from collections import Counter
 from typing import Any
@@ -34,8 +32,10 @@ from sensor_msgs.msg import CameraInfo
 
 from ptz_selfcal import topics
 from ptz_selfcal.camera.geometry import quaternion_from_matrix
-from ptz_selfcal.lens.correction import SessionLensHook
+from ptz_selfcal.lens.hook import SessionLensHook
 from ptz_selfcal.nodes.conversions import (
+    MSG_TO_TRACKING_STATE,
+    STATUS_TO_MSG,
     ConfigError,
     camera_info_fields,
     declare_params,
@@ -44,35 +44,15 @@ from ptz_selfcal.nodes.conversions import (
 )
 from ptz_selfcal.nodes.params import CalibratorNodeConfig, config_kwargs, params_from
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
-from ptz_selfcal.online.session import (
-    CalibratorSession,
-    FrameInput,
-    FrameOutput,
-    SessionConfig,
-)
+from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
+from ptz_selfcal.online.config import SessionConfig
+from ptz_selfcal.online.frames import FrameInput, FrameOutput
+from ptz_selfcal.online.session import CalibratorSession
+from ptz_selfcal.status import HOMOGRAPHY_STATES, WARN_STATUSES, CalibrationStatus, TrackingState
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches
 
 # The node's own settings, then the session's: names, defaults, descriptions and ranges from the dataclasses.
 PARAMS = params_from(CalibratorNodeConfig) + params_from(SessionConfig)
-
-_STATUS = {
-    name: getattr(FrameCalibration, name)
-    for name in (
-        "INITIALISING",
-        "CALIBRATING",
-        "CONVERGED",
-        "DEGENERATE_MOTION",
-        "TRACKING_LOST",
-        "PREDICTED_FROM_ZOOM",
-    )
-}
-_TRACKING_STATE = {
-    HomographyStamped.TRACKING: "TRACKING",
-    HomographyStamped.NEW_KEYFRAME: "NEW_KEYFRAME",
-    HomographyStamped.RELOCALISED: "RELOCALISED",
-    HomographyStamped.TRACKING_LOST: "TRACKING_LOST",
-    HomographyStamped.TEXTURELESS: "TEXTURELESS",
-}
 
 
 class CalibratorNode(Node):
@@ -91,22 +71,24 @@ class CalibratorNode(Node):
         config = SessionConfig(**kwargs)
         # a fixed lens estimates its one distortion coefficient inside the session's adjustment
         config.estimate_distortion = bool(p["estimate_distortion"]) and config.fixed_lens
-        self._session = CalibratorSession(config, state_dir=p["state_dir"] or None)
+        session = CalibratorSession(config, state_dir=p["state_dir"] or None)
         self._lens: SessionLensHook | None = None
         if p["estimate_distortion"] and not config.fixed_lens:
             self._lens = SessionLensHook(config.nominal_focal)
-            self._session.distortion_model = self._lens.distortion
-        for line in self._session.restore():
+            session.set_distortion(self._lens.distortion)
+        for line in session.restore():
             (self.get_logger().warning if line.startswith("WARNING") else self.get_logger().info)(line)
 
         self._counts: Counter[str] = Counter()
         self._warnings = CountedWarnings(self, self._counts)
         self._last_status: str | None = None
-        self._last_save = time.monotonic()
-        self._stop = threading.Event()
-        self._wake = threading.Event()
-        self._worker_running = False
         self._last_frame_stamp_ns = 0
+        self._runner = SessionRunner(
+            session,
+            RunnerConfig(p["reoptimise_budget"], p["reoptimise_period"], p["save_period"]),
+            lens=self._lens,
+            log=self._log,
+        )
 
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
@@ -114,8 +96,7 @@ class CalibratorNode(Node):
         self.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self._on_homography, reliable_qos())
         self.create_subscription(KeyframeMatches, topics.KEYFRAMES, self._on_keyframe_matches, reliable_qos())
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
-        self._worker = threading.Thread(target=self._work, name="calibrator_reoptimise", daemon=True)
-        self._worker.start()
+        self._runner.start()
         self.get_logger().info(
             f"calibrating {topics.HOMOGRAPHY} -> {self._info_pub.topic_name}; state_dir "
             f"{p['state_dir'] or '(none: no persistence)'}; bundle adjustment "
@@ -124,6 +105,12 @@ class CalibratorNode(Node):
         )
 
     # ----------------------------------------------------------------------------------------------
+    def _log(self, level: str, text: str) -> None:
+        if text.startswith("worker_error"):
+            self._warn_once("worker_error", text.removeprefix("worker_error: "))
+            return
+        getattr(self.get_logger(), level)(text)
+
     def _warn_once(self, kind: str, message: str) -> None:
         self._warnings.warn_once(kind, f"{kind}: {message}")
 
@@ -131,6 +118,7 @@ class CalibratorNode(Node):
         self._counts["homographies_in"] += 1
         self._last_frame_stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
         width, height = int(msg.image_width), int(msg.image_height)
+        runner = self._runner
         try:
             h = np.asarray(msg.h, dtype=float)
             enc = msg.encoders
@@ -138,12 +126,17 @@ class CalibratorNode(Node):
             ref = msg.reference_stamp
             reference = f"{msg.reference_frame_id}@{ref.sec}.{ref.nanosec:09d}"
             H = h.reshape(3, 3) if h.size == 9 else None
-            state = _TRACKING_STATE.get(msg.state, "TRACKING_LOST")
-            if self._lens is not None and state in ("TRACKING", "NEW_KEYFRAME", "RELOCALISED"):
+            state = MSG_TO_TRACKING_STATE.get(msg.state, TrackingState.TRACKING_LOST)
+            if self._lens is not None and state in HOMOGRAPHY_STATES:
                 # distortion-corrected homography (keyframes held back until the first estimate)
-                calibrated = self._session.state in ("CALIBRATING", "CONVERGED")
                 H, state = self._lens.frame(
-                    H, state, int(msg.keyframe_id), reference, width, height, calibrated=calibrated
+                    H,
+                    state,
+                    int(msg.keyframe_id),
+                    reference,
+                    width,
+                    height,
+                    calibrated=runner.view.calibrated,
                 )
             frame = FrameInput(
                 stamp=stamp_to_sec(msg.header.stamp),
@@ -157,17 +150,15 @@ class CalibratorNode(Node):
             )
             if width <= 0 or height <= 0:
                 self._warn_once("bad_image_size", f"image size {width}x{height} in a HomographyStamped")
-            before = self._session.counters["invalid_homographies"]
-            out = self._session.process(frame)
-            if self._session.counters["invalid_homographies"] > before:
+            out, invalid = runner.process(frame)
+            if invalid:
                 self._warn_once("invalid_homography", "a non-finite or implausible homography was ignored")
         except Exception as exc:  # never lose a frame's CameraInfo to a bug
             self._warn_once("calibrator_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-            out = self._session._nominal_output(
-                FrameInput(0.0, None, "TRACKING_LOST", max(width, 1), max(height, 1)), "TRACKING_LOST"
-            )
+            lost = FrameInput(0.0, None, TrackingState.TRACKING_LOST, max(width, 1), max(height, 1))
+            out = runner.nominal_output(lost, CalibrationStatus.TRACKING_LOST)
         if msg.state == HomographyStamped.NEW_KEYFRAME:
-            self._wake.set()  # the worker adds the keyframe and re-optimises
+            runner.wake()  # the worker adds the keyframe and re-optimises
         self._publish(msg, out)
         if out.status != self._last_status:
             self.get_logger().info(
@@ -187,7 +178,7 @@ class CalibratorNode(Node):
 
         fc = FrameCalibration()
         fc.header = msg.header
-        fc.status = _STATUS[out.status]
+        fc.status = STATUS_TO_MSG[CalibrationStatus(out.status)]
         K = out.K
         fc.fx, fc.fy, fc.cx, fc.cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
         fc.skew = float(K[0, 1])
@@ -217,87 +208,40 @@ class CalibratorNode(Node):
             return
         if self._lens is not None:  # the hook re-sends them on corrected coordinates after each update
             self._lens.matches(int(msg.keyframe_id), int(msg.other_keyframe_id), a, b)
-            self._wake.set()
+            self._runner.wake()
             return
         h = np.asarray(msg.h, dtype=float)
         h = h.reshape(3, 3) if h.size == 9 else None
-        if not self._session.add_keyframe_matches(int(msg.keyframe_id), int(msg.other_keyframe_id), a, b, h):
+        if not self._runner.add_keyframe_matches(int(msg.keyframe_id), int(msg.other_keyframe_id), a, b, h):
             self._warn_once(
                 "bad_keyframe_matches", "unusable keyframe matches (too few or non-finite points)"
             )
             return
-        self._wake.set()
-
-    # ----------------------------------------------------------------------------------------------
-    def _work(self) -> None:
-        """Worker thread: keyframes into the calibrator, bounded re-optimisation, periodic saves."""
-        budget = self._p["reoptimise_budget"]
-        while not self._stop.is_set():
-            self._wake.wait(self._p["reoptimise_period"])
-            self._wake.clear()
-            if self._stop.is_set():
-                break
-            try:
-                self._worker_running = True
-                before = self._session.state
-                self._session.step(budget)
-                if self._lens is not None and self._lens.work(self._session):
-                    self._counts["distortion_updates"] += 1
-                after = self._session.state
-                if after != before:
-                    self.get_logger().info(f"calibration state {before} -> {after}")
-                for text in self._session.take_warnings():
-                    self.get_logger().warning(text)
-                if (
-                    self._session.state_dir is not None
-                    and self._session.dirty
-                    and time.monotonic() - self._last_save > self._p["save_period"]
-                ):
-                    self._save()
-            except Exception as exc:  # the worker must survive anything
-                self._warn_once("worker_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-                time.sleep(0.1)
-            finally:
-                self._worker_running = False
-
-    def _save(self) -> None:
-        try:
-            files = self._session.save()
-            self._last_save = time.monotonic()
-            if files:
-                self.get_logger().debug(f"saved {', '.join(files)}")
-        except OSError as exc:
-            self._warn_once("state_save_failed", f"cannot save the calibration state: {exc}")
+        self._runner.wake()
 
     def _publish_diagnostics(self) -> None:
-        s = self._session
         counters: dict[str, Any] = {"homographies_in": 0, "camera_info_out": 0}
         counters.update(sorted(self._counts.items()))
-        counters.update(s.counters)
-        counters.update({f"status_{k}": v for k, v in s.status_counts.items()})
-        counters.update({k: f"{v:.3f}" for k, v in s.timings_ms().items() if math.isfinite(v)})
-        counters["calibration_state"] = s.state
+        counters.update(self._runner.read(_session_counters))  # type: ignore[arg-type]
         if self._lens is not None:
+            counters["distortion_updates"] = self._runner.distortion_updates
             counters["distortion_held_keyframes"] = self._lens.held_keyframes
             counters["distortion_uncorrectable_frames"] = self._lens.uncorrectable_frames
             lens = self._lens.lens
             if lens is not None and lens.snapshot is not None:
                 counters["distortion_lam_at_reference"] = f"{lens.snapshot.lam_at(lens.nominal_focal):.5f}"
-        counters["zoom_model_samples_total"] = s.zoom_model.sample_count
         # matched on this side (what a CameraInfo published now reaches), so a graph's readiness is observable
         counters["camera_info_subscribers"] = self._info_pub.get_subscription_count()
         counters["frame_calibration_subscribers"] = self._frame_pub.get_subscription_count()
         # whether the re-optimisation has taken in everything received up to the frame last_frame_stamp_ns
         # (0: idle; under load it lags the frames, and a test can wait for it instead of guessing a time)
         counters["last_frame_stamp_ns"] = self._last_frame_stamp_ns
-        counters["reoptimise_pending"] = (
-            len(s._pending) + len(s._pending_matches) + int(s._needs_refinement) + int(self._worker_running)
-        )
+        counters["reoptimise_pending"] = self._runner.pending
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
         status.hardware_id = topics.CAMERA_FRAME_ID
         status.level = DiagnosticStatus.OK
-        if self._last_status in ("DEGENERATE_MOTION", "TRACKING_LOST", "PREDICTED_FROM_ZOOM"):
+        if self._last_status in WARN_STATUSES:
             status.level = DiagnosticStatus.WARN
         if self._counts.get("calibrator_error") or self._counts.get("worker_error"):
             status.level = DiagnosticStatus.WARN
@@ -310,16 +254,21 @@ class CalibratorNode(Node):
 
     def close(self) -> None:
         """Stop the worker and save the state (called by run_node on shutdown)."""
-        self._stop.set()
-        self._wake.set()
-        self._worker.join(timeout=30.0)
-        if self._session.state_dir is not None:
-            try:
-                self._session.step(0.0)  # apply queued keyframes (no solve) so they are saved too
-            except Exception as exc:
-                self.get_logger().warning(f"final step failed: {exc}")
-            self._save()
-            self.get_logger().info(f"saved the calibration state to {self._session.state_dir}")
+        try:
+            self._runner.stop()
+        except Exception as exc:
+            self.get_logger().warning(f"final save failed: {exc}")
+            return
+        if self._runner.session.state_dir is not None:
+            self.get_logger().info(f"saved the calibration state to {self._runner.session.state_dir}")
+
+
+def _session_counters(s: CalibratorSession) -> dict[str, Any]:
+    counters: dict[str, Any] = dict(s.counters)
+    counters.update({f"status_{k}": v for k, v in s.status_counts.items()})
+    counters.update({k: f"{v:.3f}" for k, v in s.timings_ms().items() if math.isfinite(v)})
+    counters["calibration_state"] = s.state
+    return counters
 
 
 def _finite_or(value: float, default: float) -> float:

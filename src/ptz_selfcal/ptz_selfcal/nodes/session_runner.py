@@ -1,0 +1,202 @@
+"""The calibrator's threads: frames under a mutex, the solves in a worker thread outside it.
+
+online/session.CalibratorSession is pure and single-threaded. This runner owns the two threads that
+use it and the one lock between them: the frame thread (the rclpy executor) calls `process` and
+`add_keyframe_matches`; the worker takes the collected work under the lock, solves WITHOUT it
+(`calibration.apply` touches only the solving half), and hands the result back under the lock. So a
+frame waits at most for another frame or a hand-over, never for a solve, and a result of a reference
+that changed meanwhile is dropped by the session (its epoch is old). No rclpy here: tests drive it
+with plain threads.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ptz_selfcal.online.frames import FrameInput, FrameOutput
+from ptz_selfcal.online.incremental import IncrementalCalibrator
+from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver
+from ptz_selfcal.online.session import CalibratorSession
+from ptz_selfcal.online.work import WorkBatch, WorkResult
+
+Array = NDArray[np.float64]
+
+
+class LensWorker(Protocol):
+    """A lens correction that works beside the solves (lens/): True when its estimate changed."""
+
+    def work(self, session: SessionView) -> bool: ...
+
+
+@dataclass(frozen=True)
+class RunnerConfig:
+    budget_s: float  # one solve step's time budget
+    period_s: float  # how long the worker sleeps when nothing wakes it
+    save_period_s: float  # seconds between state saves (when changed)
+
+
+class SessionView:
+    """What the worker thread may do with the session: the solving half directly (it owns it), the
+    frame path's methods through the lock."""
+
+    def __init__(self, session: CalibratorSession, lock: threading.Lock) -> None:
+        self._session, self._lock = session, lock
+
+    @property
+    def calibrator(self) -> IncrementalCalibrator | None:
+        return self._session.calibration.calibrator
+
+    @property
+    def solver(self) -> KeyframeBundleSolver:
+        return self._session.calibration.solver
+
+    def add_keyframe_matches(
+        self, keyframe_id: int, other_keyframe_id: int, points: Array, other: Array, H: Array | None = None
+    ) -> bool:
+        with self._lock:
+            return self._session.add_keyframe_matches(keyframe_id, other_keyframe_id, points, other, H)
+
+    def keyframe_homographies_changed(self) -> None:
+        result = self._session.calibration.result()
+        with self._lock:
+            self._session.accept(result)
+
+    @property
+    def calibrated(self) -> bool:
+        with self._lock:
+            return self._session.state in ("CALIBRATING", "CONVERGED")
+
+
+class SessionRunner:
+    """Runs one CalibratorSession's frame path and solving half on their threads (module docstring)."""
+
+    def __init__(
+        self,
+        session: CalibratorSession,
+        config: RunnerConfig,
+        lens: LensWorker | None = None,
+        log: Callable[[str, str], None] = lambda level, text: None,
+        solve: Callable[[WorkBatch, float], WorkResult] | None = None,
+    ) -> None:
+        self.session = session
+        self.config = config
+        self.lens = lens
+        self.log = log  # (level, text): "info", "warning", "debug"
+        self.lock = threading.Lock()
+        self.view = SessionView(session, self.lock)
+        self._solve = solve or session.calibration.apply  # a test may wrap it
+        self.errors = 0
+        self.distortion_updates = 0
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._busy = False
+        self._last_save = time.monotonic()
+        self._thread = threading.Thread(target=self._loop, name="calibrator_solve", daemon=True)
+
+    # ---- the frame thread ------------------------------------------------------------------------
+    def process(self, frame: FrameInput) -> tuple[FrameOutput, bool]:
+        """The frame's calibration, and whether its homography was refused as invalid."""
+        with self.lock:
+            before = self.session.invalid_homographies
+            out = self.session.process(frame)
+            return out, self.session.invalid_homographies > before
+
+    def nominal_output(self, frame: FrameInput, status: str) -> FrameOutput:
+        with self.lock:
+            return self.session.nominal_output(frame, status)
+
+    def add_keyframe_matches(
+        self, keyframe_id: int, other_keyframe_id: int, points: Array, other: Array, H: Array | None
+    ) -> bool:
+        with self.lock:
+            return self.session.add_keyframe_matches(keyframe_id, other_keyframe_id, points, other, H)
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    @property
+    def pending(self) -> int:
+        """Work not done yet, the step in progress included (0: the worker is idle)."""
+        with self.lock:
+            return self.session.pending_work + int(self._busy)
+
+    def read(self, fn: Callable[[CalibratorSession], object]) -> object:
+        """fn(session) under the lock, for diagnostics."""
+        with self.lock:
+            return fn(self.session)
+
+    # ---- the worker ------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread.start()
+
+    def step(self) -> None:
+        """One worker step: take the work, solve outside the lock, hand the result back."""
+        self._busy = True
+        try:
+            with self.lock:
+                work = self.session.take_work()
+                before = self.session.state
+            result = self._solve(work, self.config.budget_s)
+            with self.lock:
+                self.session.accept(result)
+            if self.lens is not None and self.lens.work(self.view):
+                self.distortion_updates += 1
+            with self.lock:
+                after = self.session.state
+                warnings = self.session.take_warnings()
+                due = self.session.state_dir is not None and self.session.dirty
+            if after != before:
+                self.log("info", f"calibration state {before} -> {after}")
+            for text in warnings:
+                self.log("warning", text)
+            if due and time.monotonic() - self._last_save > self.config.save_period_s:
+                self.save()
+        finally:
+            self._busy = False
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(self.config.period_s)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            try:
+                self.step()
+            except Exception as exc:  # the worker must survive anything
+                self.errors += 1
+                self.log("warning", f"worker_error: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+                time.sleep(0.1)
+
+    def save(self) -> list[str]:
+        """Save the state: taken under the lock, written outside it (a disk never stalls a frame)."""
+        if self.session.state_dir is None:
+            return []
+        with self.lock:
+            data = self.session.to_dict()
+        files = self.session.write_state(data)
+        with self.lock:
+            self.session.mark_saved()
+        self._last_save = time.monotonic()
+        return files
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop the worker; with a state_dir, apply what was collected (no solve) and save."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=timeout)
+        if self.session.state_dir is not None:
+            with self.lock:
+                work = self.session.take_work()
+            result = self.session.calibration.apply(work, 0.0)
+            with self.lock:
+                self.session.accept(result)
+            self.save()

@@ -1,0 +1,148 @@
+"""Per-frame intrinsics in O(1), and the fallback chain when there is no calibration to transfer.
+
+A calibrated frame's K is a solved keyframe's K transferred by the short keyframe -> frame homography
+(eq. 20), so the error of the long reference -> keyframe chain does not enter. Without a calibration
+the chain is: the zoom model at the frame's zoom encoder, the prior transferred through the frame's
+homography, the last good K (tracking lost), the nominal field of view.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ptz_selfcal.camera.geometry import intrinsic_matrix, rotation_from_homography
+from ptz_selfcal.online.config import SessionConfig
+from ptz_selfcal.online.frames import FrameInput, FrameOutput
+from ptz_selfcal.online.work import CalibrationSnapshot
+from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
+from ptz_selfcal.status import CalibrationStatus
+
+Array = NDArray[np.float64]
+
+_LIMIT = 4096  # keyframe ids grow with the frame index: every per-keyframe map is bounded
+
+
+def _bounded_put(mapping: dict, key: int, value: object) -> None:
+    mapping[key] = value
+    if len(mapping) > _LIMIT:
+        mapping.pop(next(iter(mapping)))
+
+
+class KeyframeLinks:
+    """What the frame path knows of keyframes the solve has not seen yet: each one's homography from
+    the reference as tracked, the keyframe it was matched to (with the link's homography), and the
+    keyframes whose homography the zoom gate refused."""
+
+    def __init__(self) -> None:
+        self.homography: dict[int, Array] = {}  # keyframe -> H reference -> keyframe
+        self.neighbour: dict[int, tuple[int, Array | None]] = {}  # keyframe -> (linked keyframe, H)
+        self.refused: set[int] = set()
+
+    def add_keyframe(self, keyframe_id: int, H: Array) -> None:
+        _bounded_put(self.homography, keyframe_id, H)
+
+    def refuse(self, keyframe_id: int) -> None:
+        self.refused.add(keyframe_id)
+        if len(self.refused) > _LIMIT:
+            self.refused = set(sorted(self.refused)[_LIMIT // 2 :])
+
+    def link(self, keyframe_id: int, other_keyframe_id: int, H: Array | None) -> None:
+        """The first link of a keyframe (H maps other_keyframe_id pixels to keyframe_id pixels)."""
+        if keyframe_id not in self.neighbour and other_keyframe_id != keyframe_id:
+            _bounded_put(self.neighbour, keyframe_id, (other_keyframe_id, H))
+
+    def forget_reference(self) -> None:
+        """A new reference: the refusals were of the old one (links and homographies are per id)."""
+        self.refused.clear()
+
+
+def frame_intrinsics(
+    snap: CalibrationSnapshot, H: Array, keyframe_id: int, links: KeyframeLinks
+) -> tuple[Array, Array, float]:
+    """K_j, R_j, sigma_f of a frame whose homography from the reference is H.
+
+    Tracked against a keyframe of the solve (or one linked to it), its K is that keyframe's refined K
+    (bundle adjustment) transferred by H_j H_k^-1 and its orientation R_kj R_k; otherwise the reference
+    calibration is transferred by H (eq. 20).
+    """
+    K_ref, R_ref, sigma_f = snap.calibrator.frame_intrinsics(H)
+    model, size = snap.calibrator.model, snap.calibrator.image_size
+    local = snap.keyframes.get(keyframe_id)
+    if local is None:
+        local = _unsolved_keyframe(snap, keyframe_id, links)
+    if local is None:
+        return K_ref, R_ref, sigma_f
+    H_k, K_k, R_k = local
+    H_local = H @ np.linalg.inv(H_k)
+    K = intrinsics_from_transferred_diac(H_local, K_k, model, size)
+    R = rotation_from_homography(H_local, K_k, K) @ R_k
+    return K, R, sigma_f * K[1, 1] / K_ref[1, 1]
+
+
+def _unsolved_keyframe(
+    snap: CalibrationSnapshot, keyframe_id: int, links: KeyframeLinks
+) -> tuple[Array, Array, Array] | None:
+    """(H_ref_to_kf, K, R) of a keyframe the solve has not seen yet: a solved keyframe's refined K and R
+    carried forward through the tracker's keyframe links (direct measurements), not the long chain."""
+    chain: list[Array | None] = []
+    kid = keyframe_id
+    while kid not in snap.keyframes and kid in links.neighbour and len(chain) < 16:
+        kid, h = links.neighbour[kid]
+        chain.append(h)
+        if kid in links.refused:
+            return None
+    solved = snap.keyframes.get(kid)
+    if solved is None:
+        return None
+    H_kf = links.homography.get(keyframe_id)
+    if H_kf is None or any(h is None for h in chain):  # links without their homography
+        return solved
+    _, K, R = solved
+    model, size = snap.calibrator.model, snap.calibrator.image_size
+    for h in reversed(chain):
+        assert h is not None
+        K_next = intrinsics_from_transferred_diac(h, K, model, size)
+        R = rotation_from_homography(h, K, K_next) @ R
+        K = K_next
+    return H_kf, K, R
+
+
+def nominal_output(
+    config: SessionConfig, image_size: tuple[int, int], frame: FrameInput, status: str, keyframe_count: int
+) -> FrameOutput:
+    """The nominal field of view at the image centre: what is known before anything is measured."""
+    width, height = image_size
+    f = config.nominal_focal(width)
+    return FrameOutput(
+        status=status,
+        K=intrinsic_matrix(f, 0.5 * (width - 1.0), 0.5 * (height - 1.0)),
+        D=np.zeros(5),
+        R=None,
+        sigma_f=config.prior_sigma_f_fraction * f,
+        sigma_cx=0.05 * width,
+        sigma_cy=0.05 * height,
+        residual=math.nan,
+        keyframe_id=int(frame.keyframe_id),
+        keyframe_count=keyframe_count,
+        source="nominal",
+    )
+
+
+def last_good_output(last: FrameOutput) -> FrameOutput:
+    """Tracking lost and no zoom model: the last good calibration, orientation unknown."""
+    return FrameOutput(
+        status=CalibrationStatus.TRACKING_LOST,
+        K=last.K.copy(),
+        D=last.D.copy(),
+        R=None,
+        sigma_f=last.sigma_f,
+        sigma_cx=last.sigma_cx,
+        sigma_cy=last.sigma_cy,
+        residual=math.nan,
+        keyframe_id=last.keyframe_id,
+        keyframe_count=last.keyframe_count,
+        source="last_good",
+    )

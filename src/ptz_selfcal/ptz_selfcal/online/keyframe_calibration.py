@@ -1,0 +1,375 @@
+"""The keyframe calibration: the bounded keyframe set of one reference, its solves and the zoom model.
+
+It takes `WorkBatch`es from the frame path, adds their keyframes and matches to the incremental
+calibrator (online/incremental.py: initialisation once the motion is well posed, section 6), re-solves
+with the keyframe solver (LM on eq. 22, then the MAP bundle adjustment of eq. 27), learns the zoom
+model from converged keyframes, and answers with a `WorkResult` holding an immutable snapshot for the
+frame path. Single-threaded and pure: whoever calls `apply` owns this object; the frame path reads
+only the snapshots (the node runs `apply` in its worker thread, outside its frame lock).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+import time
+from collections import OrderedDict, deque
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ptz_selfcal.camera.geometry import intrinsic_matrix, rotation_from_homography
+from ptz_selfcal.camera.intrinsics import SelfCalibrationError
+from ptz_selfcal.online.config import SessionConfig
+from ptz_selfcal.online.incremental import IncrementalCalibrator
+from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
+from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
+from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult, ZoomTable
+from ptz_selfcal.status import CalibrationStatus
+from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
+
+Array = NDArray[np.float64]
+
+_SOLVE_ERRORS = (SelfCalibrationError, ValueError, np.linalg.LinAlgError)
+
+
+class KeyframeCalibration:
+    """One reference's keyframe calibration (see the module docstring)."""
+
+    def __init__(self, config: SessionConfig, distortion: DistortionFn | None = None) -> None:
+        self.config = config
+        self.counters: dict[str, int] = dict.fromkeys(
+            ("keyframes", "solves", "solve_failures", "calibrator_errors", "zoom_model_samples"), 0
+        )
+        self._warnings: list[str] = []
+        self.matches: OrderedDict[tuple[int, int], KeyframeMatchSet] = OrderedDict()
+        self.solver = KeyframeBundleSolver(config, self.matches)
+        self.calibrator: IncrementalCalibrator | None = None
+        self.image_size: tuple[int, int] | None = None
+        self.epoch = 0
+        self.keyframe_zoom: dict[int, float] = {}
+        self.keyframe_rate: dict[int, float] = {}  # keyframe -> zoom rate (the model learns the lag)
+        self.sampled_keyframes: set[int] = set()
+        self.zoom_model = ZoomModel()
+        self.zoom_ready = False
+        self.dirty = False
+        self._plumb_bob = PlumbBob(distortion)
+        self._published = False  # a snapshot of this epoch went out
+        self._zoom_changed = False  # the zoom model changed since the last result
+        self._needs_refinement = False
+        self._next_solve = 0.0
+        self._backlog: deque[PendingKeyframe] = deque()  # keyframes a spent budget left for later
+        self._solve_times: deque[float] = deque(maxlen=200)
+        self._zoom_table_cache: tuple[tuple, ZoomTable | None] = ((), None)
+
+    # ----------------------------------------------------------------------------------------------
+    def apply(self, work: WorkBatch, max_seconds: float) -> WorkResult:
+        """Add the batch's keyframes and matches, re-optimise within about max_seconds."""
+        solved, snapshot = False, None
+        if work.epoch != self.epoch:
+            self.reset()
+            self.epoch = work.epoch
+        if work.image_size is not None:
+            self.image_size = work.image_size
+            for m in work.matches:
+                self.matches[(m.keyframe_id, m.other_keyframe_id)] = m
+                while len(self.matches) > self.config.max_match_pairs:
+                    self.matches.popitem(last=False)
+            solved, added = self._solve(work, max_seconds)
+            if added or solved or not self._published:
+                snapshot = self.snapshot()
+                self.dirty = True
+        return self._result(solved, snapshot)
+
+    def _solve(self, work: WorkBatch, max_seconds: float) -> tuple[bool, int]:
+        if self.calibrator is None:
+            self.calibrator = self.new_calibrator()
+        calibrator = self.calibrator
+        added = 0
+        solved = False
+        start = time.perf_counter()
+        backlog = self._backlog
+        backlog.extend(work.keyframes)
+        while backlog:
+            kf = backlog.popleft()
+            if np.allclose(kf.H, np.eye(3), atol=1e-9):
+                self.solver.reference_keyframe_id = kf.keyframe_id  # the reference itself
+                self.keyframe_zoom[kf.keyframe_id] = kf.zoom
+                self._note_rate(kf.keyframe_id, kf.zoom_rate)
+                continue
+            was_calibrated = calibrator.calibrated
+            before = calibrator.last_solve
+            try:
+                calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp)
+            except _SOLVE_ERRORS as exc:
+                self.counters["calibrator_errors"] += 1
+                self._warn(f"keyframe {kf.keyframe_id} rejected: {exc}")
+                continue
+            self.keyframe_zoom[kf.keyframe_id] = kf.zoom
+            self._note_rate(kf.keyframe_id, kf.zoom_rate)
+            self.counters["keyframes"] += 1
+            added += 1
+            if calibrator.last_solve is not before:
+                solved = True
+                self._solved(time.perf_counter() - start, first=not was_calibrated)
+            if time.perf_counter() - start > max_seconds:
+                break  # the rest waits for the next batch
+        remaining = max_seconds - (time.perf_counter() - start)
+        if added:
+            self._needs_refinement = True
+        due = time.monotonic() >= self._next_solve
+        if calibrator.calibrated and self._needs_refinement and remaining > 0.0 and not solved and due:
+            solved = self._reoptimise(remaining)
+        if added:  # bounded memory: forget keyframes the calibrator dropped
+            live = {int(kf.keyframe_id) for kf in calibrator.keyframes}
+            if self.solver.reference_keyframe_id is not None:
+                live.add(int(self.solver.reference_keyframe_id))
+            self.keyframe_zoom = {k: v for k, v in self.keyframe_zoom.items() if k in live}
+            self.keyframe_rate = {k: v for k, v in self.keyframe_rate.items() if k in live}
+            self.sampled_keyframes &= live
+            self.solver.rotations = {k: v for k, v in self.solver.rotations.items() if k in live}
+        return solved, added
+
+    def _reoptimise(self, budget: float) -> bool:
+        """One bounded re-optimisation; then the next waits so that solves take at most
+        max_solve_duty of a core (they share the cores with the tracker)."""
+        calibrator = self.calibrator
+        assert calibrator is not None
+        before = calibrator.last_solve
+        t0 = time.perf_counter()
+        try:
+            calibrator.reoptimise(budget)
+        except _SOLVE_ERRORS as exc:
+            self.counters["calibrator_errors"] += 1
+            self._warn(f"re-optimisation failed: {exc}")
+        solved = calibrator.last_solve is not before
+        if solved:
+            self._solved(time.perf_counter() - t0, first=False)
+        else:
+            self.counters["solve_failures"] += 1
+        self._needs_refinement = False
+        spent = time.perf_counter() - t0
+        duty = min(max(self.config.max_solve_duty, 1e-3), 1.0)
+        self._next_solve = time.monotonic() + max(self.config.min_solve_period_s, spent * (1.0 - duty) / duty)
+        return solved
+
+    def _note_rate(self, keyframe_id: int, rate: float) -> None:
+        self.keyframe_rate[keyframe_id] = rate
+        if len(self.keyframe_rate) > 4096:
+            self.keyframe_rate.pop(next(iter(self.keyframe_rate)))
+
+    def new_calibrator(self) -> IncrementalCalibrator:
+        """An empty calibrator whose prior is the zoom model at the reference's zoom, else nominal."""
+        assert self.image_size is not None
+        return new_calibrator(
+            self.config,
+            self.image_size,
+            self.zoom_model if self.zoom_ready else None,
+            self.keyframe_zoom.get(self.solver.reference_keyframe_id, math.nan),  # type: ignore[arg-type]
+            self.solver,
+        )
+
+    def _solved(self, seconds: float, first: bool) -> None:
+        calibrator = self.calibrator
+        assert calibrator is not None
+        self.counters["solves"] += 1
+        self._solve_times.append(seconds)
+        if first and calibrator.calibrated:
+            self._needs_refinement = True  # a second, warm-started pass (with BA) right away
+        if calibrator.state.value == CalibrationStatus.CONVERGED:
+            self._learn_zoom_model(calibrator)
+
+    # ----------------------------------------------------------------------------------------------
+    def snapshot(self) -> CalibrationSnapshot | None:
+        """The calibration as the frame path reads it (None before the first batch)."""
+        calibrator = self.calibrator
+        if calibrator is None:
+            return None
+        self._published = True
+        residual = calibrator.last_solve.residual if calibrator.last_solve is not None else math.nan
+        message = calibrator.message or (calibrator.motion.message if calibrator.motion else "")
+        keyframes: dict[int, tuple[Array, Array, Array]] = {}
+        if calibrator.calibrated:
+            K_ref = calibrator.reference_K
+            for kf in calibrator.keyframes:
+                if kf.K is None:
+                    continue
+                R = self.solver.rotations.get(kf.keyframe_id)
+                if R is None:
+                    R = rotation_from_homography(kf.H, K_ref, kf.K)
+                keyframes[int(kf.keyframe_id)] = (kf.H.copy(), kf.K.copy(), np.asarray(R, dtype=float).copy())
+            ref = self.solver.reference_keyframe_id
+            if ref is not None:
+                keyframes[int(ref)] = (np.eye(3), K_ref, np.eye(3))
+        state, message = self._status(calibrator, message)
+        return CalibrationSnapshot(
+            epoch=self.epoch,
+            zoom_table=self._zoom_table(),
+            keyframes=keyframes,
+            calibrator=IncrementalCalibrator.from_dict(calibrator.to_dict()),
+            calibrated=calibrator.calibrated,
+            state=state,
+            message=message,
+            residual=float(residual),
+            keyframe_count=len(calibrator.keyframes) + 1,
+            shared_lam=self.solver.shared_lam,
+        )
+
+    def _status(self, calibrator: IncrementalCalibrator, message: str) -> tuple[CalibrationStatus, str]:
+        """The calibrator's state, except that a fixed lens is CONVERGED only while its focal length is
+        pinned: a small 1-sigma, and no move when the lens model changes (section 6.2 meets section 7)."""
+        state = CalibrationStatus(calibrator.state.value)
+        solve = calibrator.last_solve
+        if not (self.config.fixed_lens and state == CalibrationStatus.CONVERGED and solve is not None):
+            return state, message
+        c = self.config
+        rel = solve.sigma_f_ref / solve.K_ref[1, 1]
+        if not rel <= c.converged_max_sigma_f:
+            return CalibrationStatus.CALIBRATING, (
+                f"1-sigma of f {100 * rel:.2g}% > {100 * c.converged_max_sigma_f:.2g}%"
+            )
+        if not (change := self.solver.measure_lens_model_change()) <= c.converged_max_lens_model_change:
+            return CalibrationStatus.CALIBRATING, (
+                f"f moves by {100 * change:.2g}% with the radial term toggled "
+                f"(> {100 * c.converged_max_lens_model_change:.2g}%): not pinned by geometry"
+            )
+        return state, message
+
+    def _zoom_table(self, points: int = 17) -> ZoomTable | None:
+        """The zoom model over its learned range for the frame path's gate (np.interp there: no spline
+        evaluation per frame); recomputed only when the model can have changed."""
+        key = (self.counters["solves"], id(self.zoom_model), self.zoom_ready)
+        if key == self._zoom_table_cache[0]:
+            return self._zoom_table_cache[1]
+        limits = self.zoom_model.covered_range() if self.zoom_ready else None
+        table = None
+        if limits is not None:
+            z = np.linspace(float(limits[0]), float(limits[1]), points)
+            try:
+                predictions = [self.zoom_model.predict(float(zi)) for zi in z]
+                f = np.array([p.K[1, 1] for p in predictions])
+                sigma = np.array([p.sigma_f for p in predictions])
+                table = ZoomTable(z, f, sigma) if np.all(np.isfinite(f)) and np.all(f > 0.0) else None
+            except (ZoomModelError, ValueError, np.linalg.LinAlgError):
+                table = None
+        self._zoom_table_cache = (key, table)
+        return table
+
+    def _learn_zoom_model(self, calibrator: IncrementalCalibrator) -> None:
+        """The converged calibration's keyframes (and reference) become the zoom model's LIVE samples,
+        zoom -> (f, cx, cy, k1, k2) with their latest (bundle-adjusted) estimates, weighted by 1 / sigma^2
+        of log f from the adjustment; a keyframe the calibration dropped is committed with its last one."""
+        solve = calibrator.last_solve
+        common = solve.sigma_f_ref / solve.K_ref[1, 1] if solve is not None else math.nan
+        frames = [(int(kf.keyframe_id), kf.K) for kf in calibrator.keyframes if kf.K is not None]
+        ref = self.solver.reference_keyframe_id
+        if ref is not None:
+            frames.append((int(ref), calibrator.reference_K))
+        live: dict[int, tuple[float, ...]] = {}
+        for kid, K in frames:
+            zoom = self.keyframe_zoom.get(kid, math.nan)
+            if not math.isfinite(zoom):
+                continue
+            rel = self.solver.sigma_f.get(kid, math.nan) / K[1, 1]
+            rel = rel if math.isfinite(rel) and rel > 0.0 else common
+            weight = 1.0 / max(rel, 1e-4) ** 2 if math.isfinite(rel) and rel > 0.0 else 1.0
+            k1, k2 = self._plumb_bob(K, self.solver.shared_lam, self.image_size)[:2]
+            rate = self.keyframe_rate.get(kid, math.nan)  # NaN: a restored keyframe keeps its own
+            live[kid] = (zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2, weight, rate)
+        self.zoom_model.set_live(live)
+        self._zoom_changed = True
+        new = set(live) - self.sampled_keyframes
+        self.sampled_keyframes |= new
+        self.counters["zoom_model_samples"] += len(new)
+        if len(self.sampled_keyframes) >= self.config.zoom_model_min_keyframes or self.zoom_ready:
+            try:
+                self.zoom_model.predict(float(np.nanmedian(list(self.keyframe_zoom.values()))))
+                self.zoom_ready = True
+            except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
+                self._warn(f"zoom model not usable yet: {exc}")
+
+    def reset(self) -> None:
+        """A new reference: the calibration starts again, the zoom model keeps what it learned."""
+        self.zoom_model.new_calibration()  # its calibration is gone: live samples become history
+        self._zoom_changed = True
+        self.calibrator = None
+        self._backlog.clear()
+        self.matches.clear()
+        self.keyframe_zoom.clear()
+        self.keyframe_rate.clear()
+        self.sampled_keyframes.clear()
+        self.solver.reference_keyframe_id = None
+        self.solver.forget_warm_start()
+        self._published = False
+        self.dirty = True
+
+    def set_distortion(self, distortion: DistortionFn | None) -> None:
+        """A zoom lens's distortion (K -> plumb_bob D) for the zoom model's samples."""
+        self._plumb_bob = PlumbBob(distortion)
+
+    def set_zoom_model(self, model: ZoomModel, ready: bool) -> None:
+        """A loaded zoom model (state restore)."""
+        self.zoom_model, self.zoom_ready, self._zoom_changed = model, ready, True
+
+    # ----------------------------------------------------------------------------------------------
+    def result(self) -> WorkResult:
+        """The current snapshot as a result, for a change made outside `apply` (a restore, or the lens
+        correction replacing the keyframes' homographies)."""
+        return self._result(False, self.snapshot())
+
+    def _result(self, solved: bool, snapshot: CalibrationSnapshot | None) -> WorkResult:
+        zoom = None
+        if self._zoom_changed:
+            self._zoom_changed = False
+            limits = self.zoom_model.covered_range() if self.zoom_ready else None
+            if limits is not None:  # fitted here, so that the frame path's copy only evaluates
+                with contextlib.suppress(ZoomModelError, ValueError, np.linalg.LinAlgError):
+                    self.zoom_model.predict(float(np.mean(limits)))
+            zoom = copy.deepcopy(self.zoom_model)
+        warnings, self._warnings = tuple(self._warnings), []
+        times = np.fromiter(self._solve_times, float)
+        solve_ms = (
+            (float(np.median(times)) * 1e3, float(times.max()) * 1e3) if times.size else (math.nan,) * 2
+        )
+        return WorkResult(
+            epoch=self.epoch,
+            solved=solved,
+            snapshot=snapshot,
+            zoom_model=zoom,
+            zoom_ready=self.zoom_ready,
+            counters={**self.counters, "zoom_model_samples_total": self.zoom_model.sample_count},
+            warnings=warnings,
+            solve_ms=solve_ms,  # type: ignore[arg-type]
+            backlog=len(self._backlog),
+            needs_refinement=self._needs_refinement,
+        )
+
+    def _warn(self, text: str) -> None:
+        self._warnings.append(text)
+        del self._warnings[:-100]
+
+
+def new_calibrator(
+    config: SessionConfig,
+    image_size: tuple[int, int],
+    zoom_model: ZoomModel | None,
+    reference_zoom: float,
+    solver: KeyframeBundleSolver | None = None,
+) -> IncrementalCalibrator:
+    """An empty incremental calibrator; its prior K is the zoom model's at the reference zoom when there
+    is one, else the nominal field of view at the image centre."""
+    width, height = image_size
+    prior = intrinsic_matrix(config.nominal_focal(width), 0.5 * (width - 1.0), 0.5 * (height - 1.0))
+    if zoom_model is not None and math.isfinite(reference_zoom):
+        with contextlib.suppress(ZoomModelError, ValueError):
+            prior = zoom_model.predict(reference_zoom).K
+    return IncrementalCalibrator(
+        image_size,
+        config.intrinsics_model(),
+        min_rotation_deg=config.min_rotation_deg,
+        max_keyframes=config.max_keyframes,
+        prior_K=prior,
+        solver=solver,
+        min_keyframes=config.min_keyframes,
+    )
