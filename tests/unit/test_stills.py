@@ -18,9 +18,9 @@ from ptz_selfcal.camera.geometry import (
     transfer_error,
 )
 from ptz_selfcal.frontend.stills import (
+    LinkEdge,
     StillsConfig,
     StillsTracker,
-    _Edge,
     linear_focal,
     link_rotations,
     lsh_index,
@@ -212,11 +212,11 @@ def test_link_and_path_rotations_compose_along_the_fewest_links():
     rng = np.random.default_rng(2)
     rays = np.column_stack([rng.uniform(-0.3, 0.3, (20, 2)), np.ones(20)])
 
-    def edge(a: int, b: int) -> _Edge:  # rays seen by camera a, projected into both cameras
+    def edge(a: int, b: int) -> LinkEdge:  # rays seen by camera a, projected into both cameras
         world = (R[a].T @ rays.T).T
         pa = (Kc @ R[a] @ world.T).T
         pb = (Kc @ R[b] @ world.T).T
-        return _Edge(a, b, pa[:, :2] / pa[:, 2:], pb[:, :2] / pb[:, 2:])
+        return LinkEdge(a, b, pa[:, :2] / pa[:, 2:], pb[:, :2] / pb[:, 2:])
 
     edges = [edge(0, 1), edge(1, 2), edge(2, 3), edge(3, 4), edge(4, 5), edge(0, 5)]  # a ring
     focals = np.array([0.9 * F, F])

@@ -93,7 +93,9 @@ class Still:
 
 
 @dataclass(frozen=True)
-class _Edge:
+class LinkEdge:
+    """A link as the rotation prediction keeps it (link_rotations, path_rotations): a few inliers."""
+
     source: int  # positions in StillsTracker.stills
     target: int
     source_points: Array  # (rotation_points, 2) inliers, full-resolution pixels
@@ -121,7 +123,7 @@ class StillsTracker:
             nfeatures=self.config.n_features, nlevels=self.config.orb_levels, scoreType=score
         )
         self._stills: list[Still] = []
-        self._edges: list[_Edge] = []
+        self._edges: list[LinkEdge] = []
         self._link_H: list[Array] = []  # every link's homography (unit determinant): the focal estimate
         self._index = -1
         self._reference: int | None = None
@@ -200,10 +202,10 @@ class StillsTracker:
         ]
         self._link_H += [link.H for link in links]
 
-    def _edge(self, link: KeyframeLink, source: int, target: int) -> _Edge:
+    def _edge(self, link: KeyframeLink, source: int, target: int) -> LinkEdge:
         """A link as the prediction keeps it: `rotation_points` of its inliers, evenly spread."""
         keep = np.linspace(0, link.inlier_count - 1, self.config.rotation_points).round().astype(np.intp)
-        return _Edge(source, target, link.source_points[keep], link.target_points[keep])
+        return LinkEdge(source, target, link.source_points[keep], link.target_points[keep])
 
     def _chain(self, new: Still, candidates: list[Still], tried: set[int]) -> tuple[_Pair, Still] | None:
         """The first candidate that matches the new still without a prediction."""
@@ -378,7 +380,7 @@ def linear_focal(H: Array, size: tuple[float, float], bounds: tuple[float, float
     return float(np.sqrt(a)) * w
 
 
-def link_rotations(edges: list[_Edge], focals: Array, centre: Array) -> Array:
+def link_rotations(edges: list[LinkEdge], focals: Array, centre: Array) -> Array:
     """(samples, edges, 3, 3) rotation of each link (source camera -> target camera) for each focal
     length: the orthogonal Procrustes fit of its inlier rays K^-1 x (x_t ~ K R x_s, eq. 3)."""
     a = np.array([e.source_points for e in edges]) - centre  # (edges, m, 2)
@@ -394,7 +396,7 @@ def link_rotations(edges: list[_Edge], focals: Array, centre: Array) -> Array:
     return U @ Vt
 
 
-def path_rotations(edges: list[_Edge], R_edge: Array, n: int) -> tuple[Array, IntArray]:
+def path_rotations(edges: list[LinkEdge], R_edge: Array, n: int) -> tuple[Array, IntArray]:
     """Rotations from still `n` (the newest) to every still along the fewest links (breadth-first),
     for every focal sample: (samples, n + 1, 3, 3) R_n->k, with the hop count of each path (n + 1,)."""
     adjacent: list[list[tuple[int, int, bool]]] = [[] for _ in range(n + 1)]
