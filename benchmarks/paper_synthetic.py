@@ -44,11 +44,11 @@ from ptz_selfcal.camera.intrinsics import (  # noqa: E402
     SQUARE_CONSTANT_PP,
     SQUARE_VARYING_PP,
     SelfCalibrationError,
-    SelfCalibrationResult,
     image_centre,
 )
 from ptz_selfcal.selfcal.linear import linear_selfcalibration  # noqa: E402
 from ptz_selfcal.selfcal.lm import lm_selfcalibration  # noqa: E402
+from ptz_selfcal.selfcal.result import SelfCalibrationResult  # noqa: E402
 from ptz_selfcal.sim.metrics import pairwise_rotation_errors  # noqa: E402
 from ptz_selfcal.sim.synthetic import SyntheticSequence, paper_sequence  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Incremental calibrator API (DESIGN.md 5.7): O(1) per-frame K, bounded keyframes, state, persistence."""
+"""Incremental calibrator API: O(1) per-frame K (eq. 20), bounded keyframes, state, persistence."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 import yaml
 
 from ptz_selfcal.camera.geometry import (
+    image_motion,
     infinite_homography,
     intrinsic_matrix,
     ptz_rotation,
@@ -16,16 +17,10 @@ from ptz_selfcal.camera.geometry import (
     rotation_angle,
 )
 from ptz_selfcal.camera.intrinsics import SQUARE_CONSTANT_PP, SQUARE_VARYING_PP
-from ptz_selfcal.online.incremental import (
-    CalibrationState,
-    IncrementalCalibrator,
-    Keyframe,
-    focal_disagrees,
-    image_motion,
-    intrinsics_from_transferred_diac,
-    lm_solver,
-)
+from ptz_selfcal.online.incremental import IncrementalCalibrator, Keyframe, lm_solver
 from ptz_selfcal.selfcal.lm import lm_selfcalibration
+from ptz_selfcal.selfcal.transfer import focal_disagrees, intrinsics_from_transferred_diac
+from ptz_selfcal.status import CalibrationStatus
 
 SIZE = (640, 480)
 CENTRE = (319.5, 239.5)
@@ -51,7 +46,8 @@ def test_per_frame_intrinsics_equal_batch_answer_on_exact_data() -> None:
     calibrator = IncrementalCalibrator(SIZE, max_keyframes=20)
     for j in keyframes:
         calibrator.add_keyframe(j, H[j], stamp=0.1 * j)
-    assert calibrator.state in (CalibrationState.CALIBRATING, CalibrationState.CONVERGED)
+    calibrator.reoptimise()  # over every keyframe, as the batch solve below
+    assert calibrator.state in (CalibrationStatus.CALIBRATING, CalibrationStatus.CONVERGED)
     batch = lm_selfcalibration(np.concatenate([H[:1], H[keyframes]]), SIZE)
     assert rel_err(calibrator.reference_K, batch.K[0]) < 1e-6
     for j in range(30):  # keyframes and frames that never were keyframes
@@ -75,12 +71,33 @@ def test_varying_pp_model_per_frame_intrinsics() -> None:
 def test_states_initialising_then_calibrating_then_converged() -> None:
     _, _, H = sequence(30)
     calibrator = IncrementalCalibrator(SIZE, min_rotation_deg=2.0)
-    assert calibrator.state is CalibrationState.INITIALISING
+    assert calibrator.state is CalibrationStatus.INITIALISING
     assert np.allclose(calibrator.frame_intrinsics(H[1])[0][:2, 2], CENTRE, atol=30.0)  # prior still answers
-    states = [calibrator.add_keyframe(j, H[j]) for j in range(1, 30)]
-    assert states[0] is CalibrationState.INITIALISING  # 0.5 deg of rotation only
-    assert CalibrationState.CALIBRATING in states
-    assert states[-1] is CalibrationState.CONVERGED
+    states = []
+    for j in range(1, 30):  # as the session drives it: re-solve after each keyframe once initialised
+        initialised = calibrator.calibrated
+        state = calibrator.add_keyframe(j, H[j])
+        states.append(calibrator.reoptimise() if initialised else state)
+    assert states[0] is CalibrationStatus.INITIALISING  # 0.5 deg of rotation only
+    assert CalibrationStatus.CALIBRATING in states
+    assert states[-1] is CalibrationStatus.CONVERGED
+
+
+def test_keyframes_after_initialisation_are_stored_without_a_solve() -> None:
+    """add_keyframe solves once, when the motion first is well posed; re-solves are reoptimise's."""
+    _, _, H = sequence(30)
+    calibrator = IncrementalCalibrator(SIZE)
+    j = 1
+    while not calibrator.calibrated:
+        calibrator.add_keyframe(j, H[j])
+        j += 1
+    first, state = calibrator.last_solve, calibrator.state
+    for k in range(j, 30):
+        assert calibrator.add_keyframe(k, H[k]) is state
+        assert calibrator.last_solve is first
+    assert len(calibrator.keyframes) == 29
+    calibrator.reoptimise()
+    assert calibrator.last_solve is not first
 
 
 def test_pan_only_motion_is_degenerate() -> None:
@@ -90,7 +107,7 @@ def test_pan_only_motion_is_degenerate() -> None:
     calibrator = IncrementalCalibrator(SIZE)
     for j in range(1, n):
         state = calibrator.add_keyframe(j, infinite_homography(K[0], K[j], relative_rotation(R[0], R[j])))
-    assert state is CalibrationState.DEGENERATE_MOTION
+    assert state is CalibrationStatus.DEGENERATE_MOTION
     assert not calibrator.calibrated
 
 
@@ -106,6 +123,9 @@ def test_state_round_trip_through_yaml() -> None:
     assert rel_err(restored.frame_intrinsics(H[11])[0], K[11]) < 1e-6
     restored.reoptimise()
     assert rel_err(restored.reference_K, K[0]) < 1e-6
+    # a state saved while the calibrator had a solve_interval still loads (the key is ignored)
+    legacy = {**calibrator.to_dict(), "solve_interval": 1_000_000_000}
+    assert IncrementalCalibrator.from_dict(legacy).to_dict() == calibrator.to_dict()
 
 
 def test_solver_seam_receives_keyframe_records() -> None:
@@ -119,9 +139,9 @@ def test_solver_seam_receives_keyframe_records() -> None:
     calibrator = IncrementalCalibrator(SIZE, solver=solver)
     for j in range(1, 16):
         calibrator.add_keyframe(j, H[j], matches={"points": np.zeros((4, 2))})
-    assert seen and seen[-1] == 15
     assert calibrator.calibrated
     assert calibrator.reoptimise(max_seconds=0.05) is calibrator.state
+    assert seen and seen[-1] == 15
 
 
 def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
@@ -133,7 +153,7 @@ def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
     f = 1100.0 + 500.0 * np.sin(0.17 * t)
     K0 = intrinsic_matrix(f[0], *CENTRE)
     R0 = ptz_rotation(pan[0], tilt[0])
-    calibrator = IncrementalCalibrator(SIZE, max_keyframes=max_keyframes, solve_interval=500)
+    calibrator = IncrementalCalibrator(SIZE, max_keyframes=max_keyframes)
     times = np.empty(n)
     worst = 0.0
     for i in range(1, n):
@@ -141,12 +161,14 @@ def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
         H = infinite_homography(K0, K_i, relative_rotation(R0, ptz_rotation(pan[i], tilt[i])))
         start = time.perf_counter()
         calibrator.add_keyframe(i, H, stamp=float(t[i]))
+        if calibrator.calibrated and i % 500 == 0:
+            calibrator.reoptimise()  # a periodic re-solve over the bounded set
         K_est, _, _ = calibrator.frame_intrinsics(H)
         times[i] = time.perf_counter() - start
         assert len(calibrator.keyframes) <= max_keyframes
         if calibrator.calibrated and i % 250 == 0:
             worst = max(worst, rel_err(K_est, K_i))
-    assert calibrator.state is CalibrationState.CONVERGED
+    assert calibrator.state is CalibrationStatus.CONVERGED
     assert worst < 1e-6
     early, late = np.median(times[1:1000]), np.median(times[-1000:])
     assert late < 3.0 * early + 1e-4
@@ -166,11 +188,11 @@ def test_near_ambiguous_solution_is_kept_but_reported() -> None:
         p = p[:, :2] / p[:, 2:]
         vis.append(np.all((p >= 0.0) & (p <= [SIZE[0] - 1.0, SIZE[1] - 1.0]), axis=1))
         pts.append(p + rng.normal(0.0, 2.0, p.shape))
-    calibrator = IncrementalCalibrator(SIZE, SQUARE_VARYING_PP, solve_interval=29)
+    calibrator = IncrementalCalibrator(SIZE, SQUARE_VARYING_PP)
     for j in range(1, 30):
         m = vis[0] & vis[j]
         state = calibrator.add_keyframe(j, estimate_homography(pts[0][m], pts[j][m]))
-    assert state is CalibrationState.DEGENERATE_MOTION
+    assert state is CalibrationStatus.DEGENERATE_MOTION
     assert calibrator.calibrated
     K_j, _, sigma_f = calibrator.frame_intrinsics(np.eye(3))
     assert sigma_f / K_j[1, 1] > 0.02

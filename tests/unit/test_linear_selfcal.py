@@ -178,7 +178,7 @@ def test_pan_only_with_square_pixels_solves_but_is_flagged() -> None:
 
 
 def test_auto_nominal_focal_removes_most_of_the_varying_pp_bias() -> None:
-    """DESIGN.md pitfall: the varying-pp bias depends on the coordinate scale; re-normalising by the
+    """Pitfall: the varying-pp bias depends on the coordinate scale; re-normalising by the
     first estimate's focal length ('auto') shrinks it (config B, sigma = 1.5 px, 3 seeds)."""
     K, R = paper_sequence("B")
     default, auto = [], []

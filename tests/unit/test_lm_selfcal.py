@@ -134,7 +134,7 @@ def test_too_many_unknowns_is_rejected() -> None:
 
 
 def test_collapse_to_zero_focal_is_reported_as_failure() -> None:
-    """DESIGN.md pitfall: varying pp admits f -> 0 with zero cost; started near it, LM falls in."""
+    """Pitfall: varying pp admits f -> 0 with zero cost; started near it, LM falls in."""
     K, R = paper_sequence("B")
     H = noisy_homographies(K, R, 2.0, seed=0)
     K_init = K.copy()
@@ -177,7 +177,7 @@ def test_noisy_varying_pp_less_accurate_than_constant_pp() -> None:
 
 
 def test_constant_pp_solve_is_fast() -> None:
-    """Target 10 ms per 30-frame solve (measured ~2-3 ms); generous bound for a shared CI machine."""
+    """Target 10 ms per 30-frame solve; a generous bound for a shared CI machine."""
     K, R = paper_sequence("A")
     H = noisy_homographies(K, R, 0.5, seed=1)
     times = []

@@ -50,13 +50,13 @@ from ptz_selfcal.camera.intrinsics import (
     F,
     IntrinsicsModel,
     SelfCalibrationError,
-    SelfCalibrationResult,
     image_centre,
     matrices_from_values,
     parameter_index,
     values_from_matrices,
 )
 from ptz_selfcal.selfcal.degeneracy import analyse_motion, single_axis_is_degenerate
+from ptz_selfcal.selfcal.result import SelfCalibrationResult
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]

@@ -5,10 +5,12 @@ Conventions (used everywhere in the project):
 - K = [[gamma*f, s*f, u0], [0, f, v0], [0, 0, 1]] (eq. 1); fx = gamma*f, fy = f.
 - R_i maps world rays to camera-i rays, x_i ~ K_i R_i X (eq. 3); H_ij = K_j R_j R_i^T K_i^-1 (eq. 8).
 - A pan-tilt head: pan positive turns the optical axis to the right (+x), tilt positive turns it up.
-- Working resolution: x_work = (x_full + 0.5) * s - 0.5 (pixel centres preserved, DESIGN.md section 7).
+- Working resolution: x_work = (x_full + 0.5) * s - 0.5 (pixel centres preserved).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -156,6 +158,23 @@ def apply_homography(H: ArrayLike, points: ArrayLike) -> Array:
     return proj[:, :2] / proj[:, 2:3]
 
 
+def image_motion(H_a: ArrayLike, H_b: ArrayLike, width: int, height: int) -> float:
+    """Largest displacement, in image widths, of the image corners and centre from frame a to frame b.
+
+    H_a, H_b map a common reference to each frame, so H_b H_a^-1 is the frame-to-frame motion; a
+    preset recall moves a whole field of view in a few frames, normal tracking a few per cent.
+    """
+    M = np.asarray(H_b, dtype=float) @ np.linalg.inv(np.asarray(H_a, dtype=float))
+    x = np.array([[0.0, 0.0], [width - 1.0, 0.0], [0.0, height - 1.0], [width - 1.0, height - 1.0]])
+    x = np.vstack([x, [[0.5 * (width - 1.0), 0.5 * (height - 1.0)]]])
+    p = np.column_stack([x, np.ones(len(x))]) @ M.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        moved = np.linalg.norm(p[:, :2] / p[:, 2:3] - x, axis=1)
+    if not np.all(np.isfinite(moved)) or np.any(p[:, 2] <= 0.0):
+        return math.inf  # a corner went behind the camera: a huge motion, or a broken homography
+    return float(np.max(moved) / max(width, 1))
+
+
 def pixel_grid(width: int, height: int, count: int = 16) -> Array:
     """A regular (count*count', 2) grid of pixel positions spanning the image, corners included."""
     xs = np.linspace(0.0, width - 1.0, count)
@@ -170,7 +189,7 @@ def transfer_error(H_est: ArrayLike, H_true: ArrayLike, points: ArrayLike) -> Ar
 
 
 def pairwise_rotation_errors(R_est: ArrayLike, R_true: ArrayLike, pairs: ArrayLike) -> Array:
-    """|angle(R_est_i R_est_j^T) - angle(R_true_i R_true_j^T)| in radians (DESIGN.md section 7)."""
+    """|angle(R_est_i R_est_j^T) - angle(R_true_i R_true_j^T)| in radians (free of axis conventions)."""
     R_est = np.asarray(R_est, dtype=float)
     R_true = np.asarray(R_true, dtype=float)
     out = np.empty(len(pairs))

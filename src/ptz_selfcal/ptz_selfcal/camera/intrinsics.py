@@ -1,4 +1,4 @@
-"""Intrinsics models and results shared by every self-calibration method (paper sections 3.3 and 5).
+"""Intrinsics models shared by every self-calibration method (paper sections 3.3 and 5).
 
 Each intrinsic of K (eq. 1) is KNOWN, CONSTANT (unknown but the same in every frame) or VARYING
 (one unknown per frame), as in section 3.3.1. A model plus a frame count defines a parameter vector;
@@ -12,16 +12,10 @@ s f), cx, cy — the convention of `geometry.intrinsic_matrix`.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-
-from ptz_selfcal.camera.geometry import quaternion_from_matrix
-
-if TYPE_CHECKING:
-    from ptz_selfcal.selfcal.degeneracy import MotionReport
 
 Array = NDArray[np.float64]
 
@@ -110,6 +104,36 @@ SQUARE_VARYING_PP = IntrinsicsModel.square_varying_pp()
 SQUARE_KNOWN_PP = IntrinsicsModel.square_known_pp()
 
 
+def model_to_dict(model: IntrinsicsModel) -> dict:
+    """IntrinsicsModel as plain Python types."""
+    return {
+        "focal": model.focal.value,
+        "aspect": model.aspect.value,
+        "skew": model.skew.value,
+        "principal_point": model.principal_point.value,
+        "focal_value": model.focal_value,
+        "aspect_value": model.aspect_value,
+        "skew_value": model.skew_value,
+        "principal_point_value": None
+        if model.principal_point_value is None
+        else [float(v) for v in model.principal_point_value],
+    }
+
+
+def model_from_dict(data: dict) -> IntrinsicsModel:
+    pp = data.get("principal_point_value")
+    return IntrinsicsModel(
+        focal=ParamMode(data["focal"]),
+        aspect=ParamMode(data["aspect"]),
+        skew=ParamMode(data["skew"]),
+        principal_point=ParamMode(data["principal_point"]),
+        focal_value=data.get("focal_value"),
+        aspect_value=data.get("aspect_value", 1.0),
+        skew_value=data.get("skew_value", 0.0),
+        principal_point_value=None if pp is None else (float(pp[0]), float(pp[1])),
+    )
+
+
 def parameter_index(model: IntrinsicsModel, n_frames: int) -> NDArray[np.intp]:
     """(n, 5) index of each (frame, intrinsic) into the parameter vector, -1 where KNOWN.
 
@@ -181,46 +205,6 @@ def parameters_from_intrinsics(K: ArrayLike, model: IntrinsicsModel) -> Array:
     sums = np.bincount(index[mask], weights=values[mask], minlength=count)
     hits = np.bincount(index[mask], minlength=count)
     return sums / np.maximum(hits, 1)
-
-
-@dataclass
-class SelfCalibrationResult:
-    """Per-frame intrinsics and rotations from a self-calibration solve.
-
-    R[j] is the rotation of frame j relative to the reference frame 0 (R[0] = I), so that
-    x_j ~ K_j R_j K_0^-1 x_0 (section 3.3.1). Uncertainties are 1-sigma in pixels.
-    """
-
-    K: Array
-    R: Array
-    sigma_f: Array
-    sigma_pp: Array
-    residual: float
-    method: str
-    iterations: int = 0
-    ok: bool = True
-    message: str = ""
-    motion: MotionReport | None = None
-    cost: float = float("nan")
-    info: dict = field(default_factory=dict)
-
-    @property
-    def n_frames(self) -> int:
-        return len(self.K)
-
-    @property
-    def focal(self) -> Array:
-        """fy of every frame."""
-        return self.K[:, 1, 1].copy()
-
-    @property
-    def principal_point(self) -> Array:
-        """(n, 2) principal point of every frame."""
-        return self.K[:, :2, 2].copy()
-
-    def quaternions(self) -> Array:
-        """(n, 4) orientation of each frame relative to frame 0 as (x, y, z, w)."""
-        return np.array([quaternion_from_matrix(R) for R in self.R])
 
 
 def nearest_rotations(M: ArrayLike) -> Array:

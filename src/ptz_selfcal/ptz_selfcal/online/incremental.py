@@ -1,14 +1,14 @@
-"""Incremental self-calibration the calibrator node drives (DESIGN.md 5.7; no rclpy).
+"""Incremental self-calibration over a bounded keyframe set, with O(1) per-frame intrinsics (no rclpy).
 
 A calibration reference frame (frame 0) anchors everything: each keyframe brings the homography
-mapping reference pixels to its own pixels. Once the keyframes' rotation is well posed (section 6:
-enough rotation about two axes) the reference K_0 and every keyframe's K_j are solved by LM on
-eq. 22 over a BOUNDED keyframe set (the most redundant keyframe is dropped beyond max_keyframes),
-so time and memory stay bounded however long the camera runs.
+mapping reference pixels to its own pixels. The first time the keyframes' rotation is well posed
+(section 6: enough rotation about two axes) the reference K_0 and every keyframe's K_j are solved by
+LM on eq. 22 (initialisation); later re-solves run only when the caller asks (`reoptimise`), so the
+caller bounds their time. The keyframe set is bounded (the most redundant keyframe is dropped beyond
+max_keyframes), so time and memory stay bounded however long the camera runs.
 
-Any frame's K then costs O(1): its DIAC is the reference DIAC transferred by its homography,
-omega*_j = H_j omega*_0 H_j^T (eq. 20), fitted to the model (e.g. least-squares f with the constant
-principal point).
+Any frame's K then costs O(1): the reference DIAC transferred by its homography (eq. 20,
+selfcal/transfer).
 
 Seam for bundle adjustment (section 5): `solver` is any callable with the signature of
 `lm_solver` below; it receives the keyframe records (which may carry point matches attached with
@@ -17,8 +17,6 @@ Seam for bundle adjustment (section 5): `solver` is any callable with the signat
 
 from __future__ import annotations
 
-import enum
-import math
 import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
@@ -30,10 +28,10 @@ from numpy.typing import ArrayLike, NDArray
 from ptz_selfcal.camera.geometry import intrinsic_matrix, normalise_homography, rotation_from_homography
 from ptz_selfcal.camera.intrinsics import (
     IntrinsicsModel,
-    ParamMode,
     SelfCalibrationError,
-    SelfCalibrationResult,
     image_centre,
+    model_from_dict,
+    model_to_dict,
     rotations_from_homographies,
 )
 from ptz_selfcal.selfcal.degeneracy import (
@@ -46,17 +44,11 @@ from ptz_selfcal.selfcal.degeneracy import (
     single_axis_is_degenerate,
 )
 from ptz_selfcal.selfcal.lm import lm_selfcalibration
+from ptz_selfcal.selfcal.result import SelfCalibrationResult
+from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
+from ptz_selfcal.status import CalibrationStatus
 
 Array = NDArray[np.float64]
-
-
-class CalibrationState(enum.Enum):
-    """Calibrator status (DESIGN.md section 4, FrameCalibration.status)."""
-
-    INITIALISING = "INITIALISING"
-    CALIBRATING = "CALIBRATING"
-    CONVERGED = "CONVERGED"
-    DEGENERATE_MOTION = "DEGENERATE_MOTION"
 
 
 @dataclass
@@ -114,7 +106,6 @@ class IncrementalCalibrator:
         max_keyframes: int = 30,
         prior_K: ArrayLike | None = None,
         solver: SolverFn | None = None,
-        solve_interval: int = 1,
         converge_tol: float = 5e-3,
         min_keyframes: int = 4,
     ) -> None:
@@ -124,7 +115,6 @@ class IncrementalCalibrator:
         self.model = model or IntrinsicsModel()
         self.min_rotation_deg = float(min_rotation_deg)
         self.max_keyframes = int(max_keyframes)
-        self.solve_interval = max(1, int(solve_interval))
         self.converge_tol = float(converge_tol)
         self.min_keyframes = int(min_keyframes)
         self.solver: SolverFn = solver or lm_solver
@@ -133,11 +123,10 @@ class IncrementalCalibrator:
             prior_K = intrinsic_matrix(float(self.image_size[0]), cx, cy)
         self.prior_K = np.asarray(prior_K, dtype=float)
         self.keyframes: list[Keyframe] = []
-        self.state = CalibrationState.INITIALISING
+        self.state = CalibrationStatus.INITIALISING
         self.motion: MotionReport | None = None
         self.last_solve: _Solve | None = None
         self.message = ""
-        self._adds_since_solve = 0
         self._stable_solves = 0
 
     # ---- public API -----------------------------------------------------------------------
@@ -156,28 +145,27 @@ class IncrementalCalibrator:
         H_ref_to_keyframe: ArrayLike,
         stamp: float | None = None,
         matches: Any = None,
-    ) -> CalibrationState:
-        """Store a keyframe; solve when the motion is well posed (every `solve_interval` keyframes)."""
+    ) -> CalibrationStatus:
+        """Store a keyframe; solve the first time the motion is well posed (initialisation, section 6).
+
+        Once calibrated, adding is bounded work only: re-solves are the caller's, by `reoptimise`.
+        """
         H = normalise_homography(H_ref_to_keyframe)
         self.keyframes = [kf for kf in self.keyframes if kf.keyframe_id != keyframe_id]
         self.keyframes.append(Keyframe(keyframe_id, H, None if stamp is None else float(stamp), matches))
         if len(self.keyframes) > self.max_keyframes:
             self._drop_redundant(len(self.keyframes) - self.max_keyframes)
-        self._adds_since_solve += 1
-        if self.calibrated and self._adds_since_solve < self.solve_interval:
-            return self.state  # nothing due: keep adding O(1) (bounded) work only
+        if self.calibrated:
+            return self.state
         self.motion = self._motion_from_current_calibration()
         if self.motion.status == STATUS_INSUFFICIENT_ROTATION or len(self.keyframes) < self.min_keyframes:
-            if not self.calibrated:
-                self.state = CalibrationState.INITIALISING
+            self.state = CalibrationStatus.INITIALISING
             return self.state
-        if self.motion.status != STATUS_OK and not self.calibrated:
-            self.state = CalibrationState.DEGENERATE_MOTION
+        if self.motion.status != STATUS_OK:
+            self.state = CalibrationStatus.DEGENERATE_MOTION
             self.message = self.motion.message
             return self.state
-        if not self.calibrated or self._adds_since_solve >= self.solve_interval:
-            self.reoptimise()
-        return self.state
+        return self.reoptimise()
 
     def frame_intrinsics(self, H_ref_to_frame: ArrayLike) -> tuple[Array, Array, float]:
         """(K_j, R_j, sigma_f_j) of any frame in O(1) from the reference calibration (eq. 20).
@@ -197,9 +185,8 @@ class IncrementalCalibrator:
 
     def reoptimise(
         self, max_seconds: float | None = None, solver: SolverFn | None = None
-    ) -> CalibrationState:
+    ) -> CalibrationStatus:
         """Re-solve over the bounded keyframe set (reference frame first) and update the state."""
-        self._adds_since_solve = 0
         if len(self.keyframes) < self.min_keyframes:
             return self.state
         H = np.concatenate([np.eye(3)[None], np.array([kf.H for kf in self.keyframes])])
@@ -217,7 +204,7 @@ class IncrementalCalibrator:
         except SelfCalibrationError as error:
             self.message = str(error)
             if not self.calibrated:
-                self.state = CalibrationState.DEGENERATE_MOTION
+                self.state = CalibrationStatus.DEGENERATE_MOTION
             return self.state
         seconds = time.perf_counter() - start
         self._accept(result, seconds)
@@ -232,7 +219,6 @@ class IncrementalCalibrator:
             "model": model_to_dict(self.model),
             "min_rotation_deg": self.min_rotation_deg,
             "max_keyframes": self.max_keyframes,
-            "solve_interval": self.solve_interval,
             "converge_tol": self.converge_tol,
             "min_keyframes": self.min_keyframes,
             "prior_K": self.prior_K.tolist(),
@@ -270,7 +256,6 @@ class IncrementalCalibrator:
             max_keyframes=data["max_keyframes"],
             prior_K=np.array(data["prior_K"]),
             solver=solver,
-            solve_interval=data.get("solve_interval", 1),
             converge_tol=data.get("converge_tol", 5e-3),
             min_keyframes=data.get("min_keyframes", 4),
         )
@@ -284,7 +269,7 @@ class IncrementalCalibrator:
             )
             for kf in data["keyframes"]
         ]
-        calibrator.state = CalibrationState(data["state"])
+        calibrator.state = CalibrationStatus(data["state"])
         calibrator.message = data.get("message", "")
         calibrator._stable_solves = int(data.get("stable_solves", 0))
         solve = data.get("last_solve")
@@ -310,7 +295,7 @@ class IncrementalCalibrator:
             self.message = result.message
             degenerate = motion is not None and motion.status not in (STATUS_OK, STATUS_INSUFFICIENT_ROTATION)
             if degenerate:
-                self.state = CalibrationState.DEGENERATE_MOTION
+                self.state = CalibrationStatus.DEGENERATE_MOTION
             self._stable_solves = 0
             return  # keep the previous calibration (if any)
         previous = None if self.last_solve is None else self.last_solve.K_ref[1, 1]
@@ -328,12 +313,12 @@ class IncrementalCalibrator:
         self.message = result.message
         if uncertain:
             self._stable_solves = 0
-            self.state = CalibrationState.DEGENERATE_MOTION
+            self.state = CalibrationStatus.DEGENERATE_MOTION
             return
         change = np.inf if previous is None else abs(result.K[0, 1, 1] / previous - 1.0)
         self._stable_solves = self._stable_solves + 1 if change < self.converge_tol else 0
         converged = self._stable_solves >= 2
-        self.state = CalibrationState.CONVERGED if converged else CalibrationState.CALIBRATING
+        self.state = CalibrationStatus.CONVERGED if converged else CalibrationStatus.CALIBRATING
 
     def _nfev_budget(self, max_seconds: float | None) -> int:
         """LM evaluation budget from a time budget and the last solve's cost per evaluation."""
@@ -380,136 +365,3 @@ class IncrementalCalibrator:
             drop = min(i, j)  # the older of the most redundant pair
             del self.keyframes[drop]
             features = np.delete(features, drop, axis=0)
-
-
-def intrinsics_from_transferred_diac(
-    H: ArrayLike, K_ref: ArrayLike, model: IntrinsicsModel, image_size: tuple[int, int]
-) -> Array:
-    """K_j from the reference DIAC transferred by H_j: omega*_j = H omega*_0 H^T (eq. 20).
-
-    H is (3, 3) or (n, 3, 3); returns K of the same leading shape. With a constant or known
-    principal point (aspect and skew taken from K_ref) only f is free: lambda omega*_j = f^2 P + Q
-    is linear in (lambda, f^2), solved by least squares in coordinates centred and scaled by
-    K_ref's focal length. Otherwise (per-frame principal point) K_j is the Cholesky factor. A fixed
-    lens (focal length and principal point not varying) has K_j = K_ref.
-    """
-    H = np.asarray(H, dtype=float)
-    single = H.ndim == 2
-    H = H.reshape(-1, 3, 3)
-    K_ref = np.asarray(K_ref, dtype=float)
-    if model.focal is not ParamMode.VARYING and model.principal_point is not ParamMode.VARYING:
-        # a fixed lens: every frame has the reference's K (H only carries the rotation)
-        K = np.repeat((K_ref / K_ref[2, 2])[None], len(H), axis=0)
-        return K[0] if single else K
-    s = K_ref[1, 1]
-    c = image_centre(image_size)
-    N = np.array([[1.0 / s, 0.0, -c[0] / s], [0.0, 1.0 / s, -c[1] / s], [0.0, 0.0, 1.0]])
-    Hn = N @ H @ np.linalg.inv(N)
-    Kn_ref = N @ K_ref
-    diac = Hn @ (Kn_ref @ Kn_ref.T) @ np.swapaxes(Hn, 1, 2)
-    if model.principal_point is ParamMode.VARYING or model.focal is not ParamMode.VARYING:
-        K_n = _upper_cholesky(diac)
-    else:
-        K_n = _fit_focal(diac, Kn_ref)
-    K = np.linalg.inv(N) @ K_n
-    K = K / K[:, 2:3, 2:3]
-    return K[0] if single else K
-
-
-def image_motion(H_a: ArrayLike, H_b: ArrayLike, width: int, height: int) -> float:
-    """Largest displacement, in image widths, of the image corners and centre from frame a to frame b.
-
-    H_a, H_b map a common reference to each frame, so H_b H_a^-1 is the frame-to-frame motion; a
-    preset recall moves a whole field of view in a few frames, normal tracking a few per cent.
-    """
-    M = np.asarray(H_b, dtype=float) @ np.linalg.inv(np.asarray(H_a, dtype=float))
-    x = np.array([[0.0, 0.0], [width - 1.0, 0.0], [0.0, height - 1.0], [width - 1.0, height - 1.0]])
-    x = np.vstack([x, [[0.5 * (width - 1.0), 0.5 * (height - 1.0)]]])
-    p = np.column_stack([x, np.ones(len(x))]) @ M.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        moved = np.linalg.norm(p[:, :2] / p[:, 2:3] - x, axis=1)
-    if not np.all(np.isfinite(moved)) or np.any(p[:, 2] <= 0.0):
-        return math.inf  # a corner went behind the camera: a huge motion, or a broken homography
-    return float(np.max(moved) / max(width, 1))
-
-
-def focal_disagrees(
-    f: float, f_low: float, f_high: float, relative_sigma: float, n_sigma: float, floor: float
-) -> bool:
-    """Whether a frame's focal length contradicts a prediction (the zoom model at its zoom encoder).
-
-    The prediction is the interval [f_low, f_high] (the zoom encoder may lag the image: the zoom model
-    at the previous and at this frame's zoom). Compared in log f (zoom acts multiplicatively): the
-    distance of log f from the interval beyond n_sigma times the prediction's relative 1-sigma, and
-    never below `floor` (a fraction). A frame's K comes from its homography by DIAC transfer (eq. 20),
-    so a gross disagreement means a wrong homography.
-    """
-    values = (f, f_low, f_high)
-    if not all(math.isfinite(v) and v > 0.0 for v in values):
-        return True
-    lo, hi = min(f_low, f_high), max(f_low, f_high)
-    distance = max(math.log(lo / f), math.log(f / hi), 0.0)
-    relative = relative_sigma if math.isfinite(relative_sigma) and relative_sigma > 0.0 else 0.0
-    return distance > max(floor, n_sigma * relative)
-
-
-def _fit_focal(diac: Array, K_ref: Array) -> Array:
-    """(n, 3, 3) K with K_ref's aspect, skew and principal point, f^2 by least squares on the DIAC."""
-    gamma, skew = K_ref[0, 0] / K_ref[1, 1], K_ref[0, 1] / K_ref[1, 1]
-    pp = K_ref[:2, 2]
-    P = np.array([[gamma**2 + skew**2, skew, 0.0], [skew, 1.0, 0.0], [0.0, 0.0, 0.0]]).ravel()
-    p3 = np.append(pp, 1.0)
-    Q = np.outer(p3, p3).ravel()
-    d = diac.reshape(-1, 9)
-    # Normal equations of [d, -P] [lambda, f^2]^T = Q, one 2x2 system per frame.
-    a11, a12, a22 = np.einsum("ni,ni->n", d, d), -(d @ P), P @ P
-    b1, b2 = d @ Q, -(P @ Q)
-    f2 = (a11 * b2 - a12 * b1) / (a11 * a22 - a12**2)
-    if not np.all(f2 > 0.0):
-        raise SelfCalibrationError("transferred DIAC gives a non-positive focal length")
-    f = np.sqrt(f2)
-    K = np.zeros((len(d), 3, 3))
-    K[:, 0, 0], K[:, 0, 1], K[:, 1, 1] = gamma * f, skew * f, f
-    K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = pp[0], pp[1], 1.0
-    return K
-
-
-def _upper_cholesky(diac: Array) -> Array:
-    """(n, 3, 3) upper-triangular K with K K^T = diac (K[2, 2] = 1)."""
-    diac = 0.5 * (diac + np.swapaxes(diac, 1, 2))
-    if np.any(np.linalg.eigvalsh(diac)[:, 0] <= 0.0):
-        raise SelfCalibrationError("transferred DIAC is not positive definite")
-    flip = np.eye(3)[::-1]
-    L = np.linalg.cholesky(flip @ diac @ flip)  # reverse-order Cholesky gives an upper factor
-    K = flip @ L @ flip
-    return K / K[:, 2:3, 2:3]
-
-
-def model_to_dict(model: IntrinsicsModel) -> dict:
-    """IntrinsicsModel as plain Python types."""
-    return {
-        "focal": model.focal.value,
-        "aspect": model.aspect.value,
-        "skew": model.skew.value,
-        "principal_point": model.principal_point.value,
-        "focal_value": model.focal_value,
-        "aspect_value": model.aspect_value,
-        "skew_value": model.skew_value,
-        "principal_point_value": None
-        if model.principal_point_value is None
-        else [float(v) for v in model.principal_point_value],
-    }
-
-
-def model_from_dict(data: dict) -> IntrinsicsModel:
-    pp = data.get("principal_point_value")
-    return IntrinsicsModel(
-        focal=ParamMode(data["focal"]),
-        aspect=ParamMode(data["aspect"]),
-        skew=ParamMode(data["skew"]),
-        principal_point=ParamMode(data["principal_point"]),
-        focal_value=data.get("focal_value"),
-        aspect_value=data.get("aspect_value", 1.0),
-        skew_value=data.get("skew_value", 0.0),
-        principal_point_value=None if pp is None else (float(pp[0]), float(pp[1])),
-    )

@@ -23,16 +23,14 @@ from ptz_selfcal.camera.intrinsics import (
     IntrinsicsModel,
     ParamMode,
     SelfCalibrationError,
-    SelfCalibrationResult,
     image_centre,
 )
 from ptz_selfcal.online.config import SessionConfig
-from ptz_selfcal.online.incremental import (
-    Keyframe,
-    intrinsics_from_transferred_diac,
-)
+from ptz_selfcal.online.incremental import Keyframe
 from ptz_selfcal.selfcal.degeneracy import STATUS_NEAR_AMBIGUOUS
 from ptz_selfcal.selfcal.lm import lm_selfcalibration
+from ptz_selfcal.selfcal.result import SelfCalibrationResult
+from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
 
 Array = NDArray[np.float64]
 

@@ -62,7 +62,7 @@ def single_axis_is_degenerate(model: IntrinsicsModel) -> bool:
     section 6.1 (Hayman 2000): for pure pan or tilt the aspect ratio must be known and the skew or the
     principal point constrained. A fixed lens (constant f and principal point, square pixels, zero skew)
     is therefore calibrated by a pan alone. With a focal length varying per frame the session keeps
-    reporting pan-only/tilt-only motion as degenerate (DESIGN.md 5.5).
+    reporting pan-only/tilt-only motion as degenerate.
     """
     if model.focal is ParamMode.VARYING or model.principal_point is ParamMode.VARYING:
         return True

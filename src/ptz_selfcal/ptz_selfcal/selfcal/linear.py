@@ -5,7 +5,7 @@ square pixels, known principal point — are transferred to the reference frame 
 omega_j = H_j^-T omega_0 H_j^-1 (eq. 23) and solved by least squares (SVD) for the six entries of
 omega_0. Each K_j then follows from the Cholesky factorisation of omega_j.
 
-Conditioning (DESIGN.md pitfalls): pixel coordinates are centred at the image centre (or at the
+Conditioning: pixel coordinates are centred at the image centre (or at the
 known principal point) and scaled by a nominal focal length; homographies are scaled to unit
 determinant in those coordinates.
 """
@@ -17,11 +17,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.camera.intrinsics import (
     SelfCalibrationError,
-    SelfCalibrationResult,
     image_centre,
     rotations_from_homographies,
 )
 from ptz_selfcal.selfcal.degeneracy import analyse_motion
+from ptz_selfcal.selfcal.result import SelfCalibrationResult
 
 Array = NDArray[np.float64]
 
@@ -116,7 +116,7 @@ def linear_selfcalibration(
     known principal point imply zero skew, as in the paper. Raises SelfCalibrationError when the
     constraints are insufficient (rank-deficient system) or omega is not positive definite.
     nominal_focal: the coordinate scale (default the image width); "auto" re-solves with the first
-    estimate's median focal length, which removes most of the varying-pp bias (measured, config B).
+    estimate's median focal length, which removes most of the varying-pp bias.
     With `analyse`, the result carries the geometric section-6 MotionReport (no sigma_f: the
     linear method has none) and ok is False when the motion is not well posed.
     """
@@ -125,7 +125,7 @@ def linear_selfcalibration(
         raise SelfCalibrationError("no constraint selected")
     if nominal_focal == "auto":
         # Two passes: the bias with a varying principal point shrinks as the scale nears the true
-        # focal length (DESIGN.md pitfalls), so re-normalise by the first pass's median focal.
+        # focal length, so re-normalise by the first pass's median focal.
         first = linear_selfcalibration(
             H,
             image_size,
