@@ -277,6 +277,7 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
     with the frame's short keyframe -> frame homography corrected by the grid refit (as shipped) or
     left as tracked (distorted points) and composed with the keyframe's corrected chain."""
     from ptz_selfcal.lens import correction as lens_correction
+    from ptz_selfcal.lens.hook import SessionLensHook
     from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
 
     homographies, keyframes, gt = [], {}, {}
@@ -314,7 +315,7 @@ def per_frame_correction(bag: Path, lines: list[str]) -> None:
         lens_correction.LensCorrection.frame_homography = method  # type: ignore[method-assign]
         try:
             session = CalibratorSession(SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0))
-            hook = lens_correction.SessionLensHook(session.config.nominal_focal)
+            hook = SessionLensHook(session.config.nominal_focal)
             errors = []
             start = time.perf_counter()
             for msg in homographies:

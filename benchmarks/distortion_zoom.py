@@ -35,8 +35,8 @@ from ptz_selfcal.camera.distortion import (
 )
 from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.lens.curve import DistortionVsFocal
 from ptz_selfcal.lens.estimation import (
-    DistortionVsFocal,
     KeyframeMatch,
     estimate_frame_distortion,
     estimate_keyframe_distortion,

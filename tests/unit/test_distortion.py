@@ -20,8 +20,8 @@ from ptz_selfcal.camera.distortion import (
     radial_displacement,
 )
 from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
+from ptz_selfcal.lens.curve import DistortionVsFocal
 from ptz_selfcal.lens.estimation import (
-    DistortionVsFocal,
     KeyframeMatch,
     estimate_keyframe_distortion,
     estimate_pair_distortion,
@@ -273,7 +273,7 @@ def test_distortion_vs_focal_reduces_degree_on_a_narrow_range():
 
 
 def test_analytic_jacobian_matches_finite_differences():
-    from ptz_selfcal.lens import estimation as de
+    from ptz_selfcal.lens.estimation import _homography_from_update, _pair_jacobian, _pair_residuals
 
     rng = np.random.default_rng(6)
     a, b = rng.uniform(-0.5, 0.5, (40, 2)), rng.uniform(-0.4, 0.4, (40, 2))
@@ -281,10 +281,10 @@ def test_analytic_jacobian_matches_finite_differences():
     p0 = np.concatenate([[-0.2, -0.3], 0.01 * rng.normal(size=8)])
 
     def residuals(p):
-        return de._pair_residuals(a, b, p[0], p[1], de._homography_from_update(p[2:], H0), 1100.0, 1500.0)
+        return _pair_residuals(a, b, p[0], p[1], _homography_from_update(p[2:], H0), 1100.0, 1500.0)
 
-    r, J_lam, J_D = de._pair_jacobian(
-        a, b, p0[0], p0[1], H0, de._homography_from_update(p0[2:], H0), 1100.0, 1500.0
+    r, J_lam, J_D = _pair_jacobian(
+        a, b, p0[0], p0[1], H0, _homography_from_update(p0[2:], H0), 1100.0, 1500.0
     )
     J = np.hstack([J_lam, J_D])
     numeric = np.column_stack([(residuals(p0 + d) - residuals(p0 - d)) / 2e-7 for d in 1e-7 * np.eye(10)])
@@ -317,7 +317,7 @@ def test_homographies_on_corrected_coordinates():
 
 
 def test_incremental_estimator_for_the_calibrator():
-    from ptz_selfcal.lens.estimation import KeyframeDistortionEstimator
+    from ptz_selfcal.lens.estimator import KeyframeDistortionEstimator
 
     # 0.15 px: the KLT matches of the image benchmark have 0.06-0.13 px transfer rms after correction
     f, matches = zoom_sequence(n_kf=8, noise=0.15, seed=2)
@@ -331,7 +331,7 @@ def test_incremental_estimator_for_the_calibrator():
         est.solve()
     assert est.match_count == 6  # bounded
     # calibration refines the focal lengths of the live keyframes: lam follows (lam / f^2 invariant)
-    live = sorted({m.i for m in est._matches} | {m.j for m in est._matches})
+    live = est.live_keyframes()
     for kid in live:
         k = ids.index(kid)
         est.set_keyframe(kid, f[k], CENTRE)

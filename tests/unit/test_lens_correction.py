@@ -1,4 +1,4 @@
-"""lens/correction: the calibrator's online distortion state on exact synthetic correspondences.
+"""lens/correction and lens/hook: the calibrator's online distortion state on exact synthetic correspondences.
 
 Keyframes of a camera that pans, tilts and zooms (known K_i, R_i) see the same random rays through the
 issue's lens (division model, 12% corner shift at the wide end shrinking as 1/f). The module must
@@ -24,7 +24,9 @@ from ptz_selfcal.camera.geometry import (
     ptz_rotation,
 )
 from ptz_selfcal.frontend.homography import estimate_homography
-from ptz_selfcal.lens.correction import LensCorrection, SessionLensHook
+from ptz_selfcal.lens.correction import LensCorrection, LensView
+from ptz_selfcal.lens.hook import SessionLensHook
+from ptz_selfcal.lens.interface import LensEstimate, LensModel
 
 W, H = 1280, 720
 H_IMG = H
@@ -132,7 +134,7 @@ def test_corrected_keyframe_homographies_match_the_truth() -> None:
 def test_frames_near_a_keyframe_are_corrected_to_second_order() -> None:
     lens = feed(lam_issue)
     k = 3
-    H_raw_k = lens._H_raw[k]
+    H_raw_k = lens.tracked_homography(k)
     # a frame 1 degree of pan and 3% zoom away from keyframe 3, tracked against it on distorted points
     pan, tilt, zoom = POSES[k]
     K_f = intrinsic_matrix(F_WIDE * zoom * 1.03, *PP)
@@ -162,9 +164,9 @@ def test_plumb_bob_consistent_with_the_division_model_and_cached() -> None:
         assert D[0] < 0.0 and np.all(D[2:] == 0.0)  # barrel
         err = max_distortion_difference(("plumb_bob", D, K), ("division", [lam_issue(K[0, 0])], K), W, H)
         assert err < 1.0, (zoom, err)
-    cached = len(lens._plumb_bob)
+    cached = lens.plumb_bob_cached
     lens.plumb_bob(intrinsic_matrix(F_WIDE * 1.5, *PP))
-    assert len(lens._plumb_bob) == cached
+    assert lens.plumb_bob_cached == cached
 
 
 def test_no_distortion_gives_zero_coefficients_and_unchanged_homographies() -> None:
@@ -210,16 +212,32 @@ class _StubCalibrator:
         raise ValueError("not needed: every keyframe is solved")
 
 
+class _StubSolver:
+    """What SessionLensHook exchanges with online/keyframe_solver.KeyframeBundleSolver in joint mode."""
+
+    def __init__(self) -> None:
+        self.model: LensModel | None = None
+        self.lens_estimate: LensEstimate | None = None
+
+    def set_lens_model(self, model: LensModel | None) -> None:
+        self.model = model
+
+
 class _StubSession:
-    """What SessionLensHook uses of online/session.CalibratorSession."""
+    """What SessionLensHook uses of online/session.CalibratorSession (lens/hook.LensSession)."""
 
     def __init__(self) -> None:
         self.calibrator = _StubCalibrator()
+        self.solver = _StubSolver()
         self.matches: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]] = []
+        self.homography_updates = 0
 
     def add_keyframe_matches(self, i, j, a, b, H=None) -> bool:
         self.matches.append((i, j, a, b, H))
         return True
+
+    def keyframe_homographies_changed(self) -> None:
+        self.homography_updates += 1
 
 
 @pytest.mark.parametrize("hold", [True, False])
@@ -274,20 +292,9 @@ def test_a_calibrated_session_never_gets_a_raw_homography_the_correction_cannot_
     assert np.allclose(out, H_raw) and state == "TRACKING" and hook.uncorrectable_frames == 1
 
 
-class _StubSolver:
-    """What SessionLensHook uses of calibration_state.KeyframeBundleSolver in joint mode."""
-
-    def __init__(self) -> None:
-        self.lens = None
-        self.lens_estimate = None
-
-
 def test_joint_hook_sends_raw_matches_and_takes_the_adjusted_centre_once_it_is_certain() -> None:
-    from ptz_selfcal.online.keyframe_solver import LensEstimate
-
     hook = SessionLensHook(lambda width: F_WIDE, centre_gate_px=2.0)
     session = _StubSession()
-    session.solver = _StubSolver()
     hook.frame(np.eye(3), "NEW_KEYFRAME", 0, "ref", W, H_IMG)
     H_raw = np.eye(3)
     for k in range(1, 4):
@@ -296,15 +303,18 @@ def test_joint_hook_sends_raw_matches_and_takes_the_adjusted_centre_once_it_is_c
         hook.frame(H_raw, "NEW_KEYFRAME", k, "ref", W, H_IMG)
         hook.matches(k, k - 1, *matches(k, k - 1, lam_issue))
         hook.work(session)
-    assert session.solver.lens is hook  # the adjustment gets the lens model (lam_guess, distort)
+    # the adjustment gets the lens model as a value: the correction at its current estimate
+    view = session.solver.model
+    assert isinstance(view, LensView) and view.correction is hook.lens
+    assert view.snapshot is hook.lens.snapshot is not None
     i, j, a, _, _ = session.matches[-1]
     np.testing.assert_array_equal(a, matches(i, j, lam_issue)[0])  # raw points: the adjustment fits lam
     assert hook.centre is None and np.allclose(hook.lens.centre0, [(W - 1) / 2, (H_IMG - 1) / 2])
     # lam_guess and distort are the lens model: distort inverts the correction of the keyframe's points
-    lam = hook.lam_guess(2, F_WIDE)
+    lam = view.lam_guess(2, F_WIDE)
     assert lam < 0.0 and abs(lam / lam_issue(F_WIDE) - 1.0) < 0.2
     pts = matches(2, 1, lam_issue)[0]
-    np.testing.assert_allclose(hook.distort(2, hook.lens.undistort_points(2, pts)), pts, atol=1e-6)
+    np.testing.assert_allclose(view.distort(2, hook.lens.undistort_points(2, pts)), pts, atol=1e-6)
     # an uncertain estimate is not taken, a certain one is (and the coefficients are re-estimated)
     centre = np.array(PP)
     session.solver.lens_estimate = LensEstimate(centre + 5.0, np.array([3.0, 3.0]), {}, {})
@@ -317,7 +327,14 @@ def test_joint_hook_sends_raw_matches_and_takes_the_adjusted_centre_once_it_is_c
     assert hook.lens.stats.updates == updates + 1
     np.testing.assert_allclose(hook.centre, centre)
     np.testing.assert_allclose(hook.lens.centre0, centre)
+    assert session.solver.model.snapshot is hook.lens.snapshot  # the next solves start from it
     assert not hook.work(session)  # the same estimate again: nothing to do
+    # a new map: the old map's model is void at once (the next solve must not use it)
+    hook.frame(np.eye(3), "NEW_KEYFRAME", 0, "new map", W, H_IMG)
+    void = session.solver.model
+    assert void.correction is hook.lens and void.snapshot is None
+    assert void.lam_guess(2, F_WIDE) == 0.0 and void.keyframe_homography(2) is None
+    np.testing.assert_array_equal(void.distort(2, pts), pts)
 
 
 def test_new_keyframes_corrected_on_arrival_before_the_worker_chains_them() -> None:

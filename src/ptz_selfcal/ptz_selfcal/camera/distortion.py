@@ -92,6 +92,32 @@ def half_diagonal(width: int, height: int) -> float:
     return 0.5 * float(np.hypot(width - 1.0, height - 1.0))
 
 
+def lambda_of_corner_shift(shift: ArrayLike, rho: ArrayLike) -> Array:
+    """lam such that undistortion moves a distorted point at normalised radius rho by the fraction
+    `shift` of its radius: 1 / (1 + lam rho^2) = 1 + shift (the corner shift, as data sheets quote
+    distortion, with rho = half-diagonal / f). The one definition of this conversion."""
+    s, r = np.asarray(shift, dtype=float), np.asarray(rho, dtype=float)
+    return -s / ((1.0 + s) * r * r)
+
+
+def corner_shift_of_lambda(lam: ArrayLike, rho: ArrayLike) -> Array:
+    """Inverse of lambda_of_corner_shift: the shift fraction of a point at normalised radius rho."""
+    la, r = np.asarray(lam, dtype=float), np.asarray(rho, dtype=float)
+    return 1.0 / (1.0 + la * r * r) - 1.0
+
+
+def lambda_of_corner_shift_derivative(shift: ArrayLike, rho: ArrayLike) -> Array:
+    """d lam / d shift of lambda_of_corner_shift at constant rho."""
+    s, r = np.asarray(shift, dtype=float), np.asarray(rho, dtype=float)
+    return -1.0 / ((1.0 + s) ** 2 * r * r)
+
+
+def corner_shift_of_lambda_derivative(lam: ArrayLike, rho: ArrayLike) -> Array:
+    """d shift / d lam of corner_shift_of_lambda at constant rho."""
+    la, r = np.asarray(lam, dtype=float), np.asarray(rho, dtype=float)
+    return -(r * r) / (1.0 + la * r * r) ** 2
+
+
 def division_lambda_for_corner_shift(shift_fraction: float, width: int, height: int, f: float) -> float:
     """lam such that undistortion moves the image corner by shift_fraction of the half-diagonal.
 
@@ -100,15 +126,12 @@ def division_lambda_for_corner_shift(shift_fraction: float, width: int, height: 
     """
     if shift_fraction <= -1.0:
         raise ValueError("shift_fraction must be > -1")
-    rho = half_diagonal(width, height) / f
-    # 1 / (1 + lam rho^2) = 1 + s  =>  lam = -s / ((1 + s) rho^2)
-    return float(-shift_fraction / ((1.0 + shift_fraction) * rho * rho))
+    return float(lambda_of_corner_shift(shift_fraction, half_diagonal(width, height) / f))
 
 
 def division_corner_shift(lam: float, width: int, height: int, f: float) -> float:
     """Inverse of division_lambda_for_corner_shift: corner shift as a fraction of the half-diagonal."""
-    rho = half_diagonal(width, height) / f
-    return float(1.0 / (1.0 + lam * rho * rho) - 1.0)
+    return float(corner_shift_of_lambda(lam, half_diagonal(width, height) / f))
 
 
 # --------------------------------------------------------------------------------------------------

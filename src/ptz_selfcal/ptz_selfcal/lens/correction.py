@@ -4,58 +4,50 @@ Section 7 of the paper shows that self-calibration on homographies of DISTORTED 
 the focal length (and under-estimates the motion), and suggests "correct the homographies, then
 self-calibrate". The tracker's homography reference -> keyframe is a CHAIN of keyframe-to-keyframe
 homographies, each fitted to distorted points: every link absorbs part of the distortion into a
-projective error, and the errors compound along the chain. Undistorting a grid mapped through that
-chained homography (distortion_estimation.undistorted_homography) therefore does not recover the
-undistorted homography: on the issue-6 bag (1280x720, 12% corner shift at the wide end) it leaves a
-median 9 px transfer error against the truth, and self-calibration on it misses f by ~7%. Recomputing
-every LINK from its raw inlier correspondences after undistorting them, and chaining the corrected
-links from the reference, gives 0.7 px and f within 0.1% (benchmarks/distortion.py, first part).
+projective error, and the errors compound along the chain, so undistorting a grid mapped through the
+chained homography (lens/estimation.undistorted_homography) does not recover the undistorted one.
+Recomputing every LINK from its raw inlier correspondences after undistorting them, and chaining the
+corrected links from the reference, does.
 
 `LensCorrection` does exactly that, online and in bounded time:
 - `add_match(newer, older, pts_newer, pts_older)`: the tracker's KeyframeMatches (raw, distorted,
-  full-resolution inliers). They feed lens/estimation.KeyframeDistortionEstimator (one
-  division coefficient per keyframe jointly with the pair homographies; the lam(f) curve) and, for each
+  full-resolution inliers). They feed lens/estimator.KeyframeDistortionEstimator (one division
+  coefficient per keyframe jointly with the pair homographies; the lam(f) curve) and, for each
   keyframe, its best link to an older keyframe (most points) for the chain.
 - `set_keyframe(id, f, centre)`: the calibrator's current focal length / principal point of a keyframe.
   Before any calibration a prior (nominal focal length) is good enough: the images constrain the
   pixel-space coefficient kappa = lam / f^2 about the distortion centre, which does not depend on f;
   f only places a keyframe on the lam(f) curve, refined as the calibration converges.
-- `update()` (worker thread, only when new matches arrived): every `solve_every` matches the joint
-  estimation (one solve over at most `max_matches` matches, ~0.1-0.4 s), in between only the new
-  links are chained with the current estimates (milliseconds); the corrected homography reference ->
-  keyframe of every keyframe is its chain of corrected links (DLT + LM on undistorted inliers, cached
-  per link until its coefficients change). Keyframes that left the estimator's window keep their last
-  estimate; new ones take their ancestor's, carried over the zoom ratio. Nothing runs per frame.
+- `update()` (worker, only when new matches arrived): every `solve_every` matches the joint
+  estimation over at most `max_matches` matches, in between only the new links are chained with the
+  current estimates (cheap); the corrected homography reference -> keyframe of every keyframe is its
+  chain of corrected links (DLT + LM on undistorted inliers, cached per link until its coefficients
+  change). Keyframes that left the estimator's window keep their last estimate; new ones take their
+  ancestor's, carried over the zoom ratio. Nothing runs per frame.
 - Per frame (`frame_homography`): the corrected H reference -> frame is the frame's short
-  keyframe -> frame homography (tracked on distorted points, corrected by an 8x8-grid refit) composed
-  with the keyframe's corrected chain. Measured on the issue-6 bag (benchmarks/distortion.py): without
-  the refit the focal p90 is 3.3% instead of 1.3% (median unchanged, 0.6%), so the per-frame K does
-  need it; its error is second order (0.45 px for a frame 1 deg and 3% zoom from its keyframe,
-  tests/unit/test_lens_correction.py) and it costs ~1 ms.
+  keyframe -> frame homography (tracked on distorted points, corrected by an 8x8-grid refit: its error
+  is second order in the keyframe -> frame motion, without it the per-frame K's tail is several times
+  worse) composed with the keyframe's corrected chain.
 - `plumb_bob(K)`: D = [k1, k2, 0, 0, 0] of lam(f) at the frame's focal length for CameraInfo
   (distortion.division_to_plumb_bob, consistent with K: OpenCV undistortion with (K, D) reproduces the
   division model); cached by (lam, f, principal point) so a steady zoom costs a dictionary lookup.
 - `undistort_points(id, pts)`: keyframe matches on corrected coordinates for the bundle adjustment
   (section 5).
+- `view()`: the lens model a keyframe solve starts from (`LensView`, lens/interface.LensModel).
 
 The distortion centre. In rotation-only data it is nearly interchangeable with the principal point
 when the two are estimated apart (self-calibration on corrected homographies follows the assumed
-centre almost one to one; feeding its principal point back as the centre diverged, -210 px). So the
+centre almost one to one, and feeding its principal point back as the centre diverges). So the
 keyframe bundle adjustment estimates them as ONE point, with the distortion, on the raw keyframe
-matches (bundle/adjust.py distortion="curve", online/session.KeyframeBundleSolver with
-`SessionLensHook` as its `lens`): no corrected data enters it, so there is no feedback loop. Once its
-principal point's 1-sigma is below `centre_gate_px` the hook makes it the centre here (`set_centre`)
-and the adjustment's per-keyframe coefficients and lam(f) curve replace the estimator's (`set_joint`).
-On the issue-6 bag (principal point 18 px off centre) the adjustment alone recovers it within ~1 px
-(benchmarks/distortion.py part 1), where holding the centre at the image centre left ~20 px and a
-focal error ~0.6%. Until the gate opens the centre is the image centre. `joint_bundle=False` keeps the
-older path (corrected matches to the adjustment, centre at the image centre or, with
-`centre_from_calibration`, the calibrated principal point).
+matches (bundle/adjust.py distortion="curve", online/keyframe_solver.KeyframeBundleSolver given a
+`LensView`): no corrected data enters it, so there is no feedback loop. Once its principal point's
+1-sigma is below a gate lens/hook.SessionLensHook makes it the centre here (`set_centre`) and the
+adjustment's per-keyframe coefficients and lam(f) curve replace the estimator's (`set_joint`). Until
+the gate opens the centre is the image centre.
 
-While the worker is behind (a solve takes ~0.2-0.7 s, keyframes come every few frames at the tele
-end), a new keyframe's first link is corrected on arrival (`provisional_link`, on the parent's chain or
-its provisional one): without it the keyframe's frames use a long tracked span from the newest chained
-keyframe, 35-70% off on the issue-6 bag.
+While the worker is behind, a new keyframe's first link is corrected on arrival (`provisional_link`,
+on the parent's chain or its provisional one): otherwise the keyframe's frames would use a long
+tracked span from the newest chained keyframe.
 
 Pure: numpy + the core modules, no rclpy. Not thread-safe by itself: `update` builds a new immutable
 `LensSnapshot` and swaps it in one assignment, so a frame thread may read `snapshot` concurrently.
@@ -66,22 +58,18 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.camera.distortion import division_distort, division_to_plumb_bob, division_undistort
 from ptz_selfcal.camera.geometry import normalise_homography
-from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.frontend.homography import estimate_homography
-from ptz_selfcal.lens.estimation import (
-    DistortionVsFocal,
-    KeyframeDistortionEstimator,
-    undistorted_homography,
-)
+from ptz_selfcal.lens.curve import DistortionVsFocal
+from ptz_selfcal.lens.estimation import undistorted_homography
+from ptz_selfcal.lens.estimator import KeyframeDistortionEstimator
 
 Array = NDArray[np.float64]
 
@@ -292,10 +280,10 @@ class LensCorrection:
     def update(self, force: bool = False) -> bool:
         """Re-estimate distortion and the corrected keyframe chains; True when the snapshot changed.
 
-        The joint estimation (the expensive part, ~0.1-1 s) runs on the first call and then once every
+        The joint estimation (the expensive part) runs on the first call and then once every
         `solve_every` new matches (or when forced); in between only the new links are chained with the
-        current estimates (new keyframes take lam from the curve), a few milliseconds, so a worker that
-        falls behind never leaves new keyframes without a corrected homography.
+        current estimates (new keyframes take lam from the curve), which is cheap, so a worker that falls
+        behind never leaves new keyframes without a corrected homography.
         """
         if self._unchained == 0 and not force:
             return False
@@ -342,7 +330,7 @@ class LensCorrection:
         self.stats.last_update_ms = 1e3 * (time.perf_counter() - start)
         return True
 
-    def _kappa_for(self, snap: LensSnapshot, kid: int) -> tuple[float, Array]:
+    def kappa_for(self, snap: LensSnapshot, kid: int) -> tuple[float, Array]:
         """A keyframe's pixel-space coefficient: its estimate, else its nearest estimated ancestor's
         carried over the zoom change between them (consecutive keyframes differ little in zoom; a new
         keyframe's focal length may still be the nominal one, which would misplace it on the curve),
@@ -379,7 +367,7 @@ class LensCorrection:
         return kappa / ratio
 
     def undistort(self, snap: LensSnapshot, kid: int, pts: Array) -> Array:
-        kappa, c = self._kappa_for(snap, kid)
+        kappa, c = self.kappa_for(snap, kid)
         if kappa == 0.0:
             return pts
         # division_undistort with lam on radius / f: lam = kappa f^2 for any f (use f = 1)
@@ -400,7 +388,7 @@ class LensCorrection:
             parent_H = chain.get(link.parent)
             if parent_H is None:
                 continue
-            key = (link.parent, *self._kappa_for(snap, link.parent)[0:1], *self._kappa_for(snap, child)[0:1])
+            key = (link.parent, *self.kappa_for(snap, link.parent)[0:1], *self.kappa_for(snap, child)[0:1])
             key = (*key, *self._centre.get(child, self.centre0), *self._centre.get(link.parent, self.centre0))
             cached = self._link_H.get(child)
             try:
@@ -440,12 +428,12 @@ class LensCorrection:
         """Corrected keyframe homographies; the tracker's own where the lens barely distorts.
 
         One link per keyframe drifts more than the tracker's homography reference -> keyframe
-        (re-matched, refined): on an undistorted lens the pure chains cost accuracy (demo bag: focal
-        0.02% -> 0.3%). Where a keyframe's estimated distortion moves the image corner by less than
-        `tracker_below_px`, the published homography is C_k R_k^-1 T_k: the tracked T_k brought back
-        by the inverse raw-point chain R_k (near identity), then along the corrected chain C_k
-        (= R_k without distortion: T_k unchanged). With real distortion R_k^-1 T_k is not a pure
-        drift (fits of distorted points depend on which points) and the chain C_k is used as is.
+        (re-matched, refined), so on an undistorted lens the pure chains cost accuracy. Where a
+        keyframe's estimated distortion moves the image corner by less than `tracker_below_px`, the
+        published homography is C_k R_k^-1 T_k: the tracked T_k brought back by the inverse raw-point
+        chain R_k (near identity), then along the corrected chain C_k (= R_k without distortion: T_k
+        unchanged). With real distortion R_k^-1 T_k is not a pure drift (fits of distorted points
+        depend on which points) and the chain C_k is used as is.
         """
         out = dict(self._H_chain)
         if self.tracker_below_px <= 0.0:
@@ -453,7 +441,7 @@ class LensCorrection:
         r = 0.5 * math.hypot(self.width, self.height)
         for kid, C in self._H_chain.items():
             R, T = self._raw_chain.get(kid), self._H_raw.get(kid)
-            if R is None or T is None or abs(self._kappa_for(snap, kid)[0]) * r**3 >= self.tracker_below_px:
+            if R is None or T is None or abs(self.kappa_for(snap, kid)[0]) * r**3 >= self.tracker_below_px:
                 continue
             with contextlib.suppress(np.linalg.LinAlgError, ValueError):
                 H = normalise_homography(C @ np.linalg.solve(R, T))
@@ -464,6 +452,18 @@ class LensCorrection:
     # ---- frame thread ------------------------------------------------------------------------------
     def ready(self) -> bool:
         return self.snapshot is not None
+
+    def has_keyframe(self, keyframe_id: int) -> bool:
+        """Whether the keyframe's tracked homography (its NEW_KEYFRAME message) has arrived."""
+        return int(keyframe_id) in self._H_raw
+
+    def tracked_homography(self, keyframe_id: int) -> Array | None:
+        """The keyframe's tracked H reference -> keyframe, on distorted points (add_keyframe)."""
+        return self._H_raw.get(int(keyframe_id))
+
+    def view(self) -> LensView:
+        """The lens model at the current estimate, for the keyframe solver (lens/interface.LensModel)."""
+        return LensView(self, self.snapshot)
 
     def keyframe_homography(self, keyframe_id: int) -> Array | None:
         """Corrected H reference -> keyframe (None: not chained yet)."""
@@ -494,7 +494,7 @@ class LensCorrection:
             for k in (kid, *(k for k in reversed(self._H_raw) if k != kid)):
                 if k not in self._H_raw or not (k in snap.H or k in self._provisional):
                     continue
-                chained = self._provisional_chain(snap, k)
+                chained = self.provisional_chain(snap, k)
                 if chained is not None:
                     return self._from_base(snap, H_raw, k, *chained)
                 if k in snap.H:
@@ -503,7 +503,7 @@ class LensCorrection:
         if base is None:
             return None
         H_local = np.asarray(H_raw, dtype=float) @ np.linalg.inv(self._H_raw[base])
-        kappa, c = self._kappa_for(snap, base)
+        kappa, c = self.kappa_for(snap, base)
         if kappa != 0.0:
             kappa_j = self._carry(snap, kappa, base, zoom_ratio(H_local))
             if f_frame is not None and math.isfinite(f_frame) and f_frame > 0 and snap.curve.fitted():
@@ -516,7 +516,7 @@ class LensCorrection:
                 )
         return normalise_homography(H_local @ snap.H[base])
 
-    def _provisional_chain(
+    def provisional_chain(
         self, snap: LensSnapshot, kid: int, depth: int = 0
     ) -> tuple[Array, float, Array, float] | None:
         """(corrected H reference -> kid, kappa, centre, focal length) through provisional links down
@@ -527,7 +527,7 @@ class LensCorrection:
         parent, H_link, kappa, c, f = prov
         if parent in snap.H:
             return H_link @ snap.H[parent], kappa, c, f
-        up = self._provisional_chain(snap, parent, depth + 1)
+        up = self.provisional_chain(snap, parent, depth + 1)
         return None if up is None else (H_link @ up[0], kappa, c, f)
 
     def _from_base(
@@ -555,14 +555,14 @@ class LensCorrection:
     ) -> bool:
         """Correct a new keyframe's link to an older, chained keyframe at once (its raw inliers
         undistorted with the parent's coefficient and the parent's carried over the link's zoom, one
-        homography fit, ~ms), so that the keyframe's frames use it instead of a long tracked span from
-        the newest chained keyframe until `update` chains the keyframe (a worker 15 frames behind:
-        replayed issue-6 bag). For the thread that calls `frame_homography`; True when stored."""
+        homography fit), so that the keyframe's frames use it instead of a long tracked span from the
+        newest chained keyframe until `update` chains the keyframe. For the thread that calls
+        `frame_homography`; True when stored."""
         snap = self.snapshot
         kid, parent = int(keyframe_id), int(parent_id)
         if snap is None or kid in snap.H or kid in self._provisional:
             return False
-        up = None if parent in snap.H else self._provisional_chain(snap, parent)
+        up = None if parent in snap.H else self.provisional_chain(snap, parent)
         if parent not in snap.H and up is None:
             return False
         if kid not in self._H_raw or parent not in self._H_raw or kid <= parent:
@@ -571,7 +571,7 @@ class LensCorrection:
         b = np.asarray(parent_pts, dtype=float).reshape(-1, 2)
         if len(a) != len(b) or len(a) < 12:
             return False
-        kappa_p, c = self._kappa_for(snap, parent) if up is None else (up[1], up[2])
+        kappa_p, c = self.kappa_for(snap, parent) if up is None else (up[1], up[2])
         f_p = self._focal.get(parent, self.nominal_focal) if up is None else up[3]
         ratio = zoom_ratio(self._H_raw[kid] @ np.linalg.inv(self._H_raw[parent]))
         kappa = self._carry(snap, kappa_p, parent, ratio, f_p)
@@ -595,10 +595,15 @@ class LensCorrection:
         snap = self.snapshot
         return p if snap is None else self.undistort(snap, int(keyframe_id), p)
 
+    @property
+    def plumb_bob_cached(self) -> int:
+        """(k1, k2) fits held by the plumb_bob cache."""
+        return len(self._plumb_bob)
+
     def plumb_bob(self, K: ArrayLike) -> Array:
         """CameraInfo D = [k1, k2, 0, 0, 0] of lam(f) at K's focal length, about K's principal point.
 
-        O(1) per frame while the camera zooms: (k1, k2) are fitted (division_to_plumb_bob, ~1 ms) at
+        O(1) per frame while the camera zooms: (k1, k2) are fitted (division_to_plumb_bob) at
         nodes 0.5% apart in log f, cached per estimate, and interpolated linearly in log f between the
         two nodes around the frame's f (k1, k2 are smooth in f: the interpolation error is far below
         the fit's own).
@@ -634,262 +639,48 @@ class LensCorrection:
         return D
 
 
-# --------------------------------------------------------------------------------------------------
-# The calibrator node's seam
-# --------------------------------------------------------------------------------------------------
-class SessionLensHook:
-    """LensCorrection in front of a calibration session (online/session.CalibratorSession).
+@dataclass(frozen=True)
+class LensView:
+    """lens/interface.LensModel of a LensCorrection at one estimate (`snapshot`; None: none yet, then
+    lam 0, no distortion and no corrected homography). Keyframe id None = the reference.
 
-    The node calls, in its three threads of control:
-    - `frame(H, state, keyframe_id, reference, width, height)` (frame callback): the tracked homography
-      replaced by the corrected one. Keyframes arriving before the first distortion estimate (the first
-      two or three) pass uncorrected and get their corrected chains at the first `work`; with
-      `hold_keyframes` they are passed on as plain TRACKING frames instead, never entering the
-      calibration (measured worse: 12% barrel bag focal median 0.79% vs 0.62%, undistorted demo bag
-      0.26% vs 0.11%).
-    - `matches(...)` (KeyframeMatches callback): queued, O(1).
-    - `work(session)` (the node's worker, after `session.step`): drains the queue into LensCorrection,
-      gives it the session's keyframe focal lengths and principal point (nominal before the first
-      calibration), re-estimates distortion when matches arrived, and re-sends the latest keyframe
-      matches to the session on corrected coordinates (the bundle adjustment's observations) with the
-      corrected link homographies.
-    - `distortion(K)` (frame callback): plumb_bob D for the frame's K.
-    The session gets D through its `distortion_model` seam (the node plugs `distortion` into it).
-    """
+    The estimate is fixed (the worker that solves is the one that updates it); the links and
+    provisional chains it reads are the correction's current ones, as the frame thread adds them."""
 
-    def __init__(
-        self,
-        nominal_focal_of_width: Any,
-        resend: int = 64,
-        centre_from_calibration: bool = False,
-        hold_keyframes: bool = False,
-        joint_bundle: bool = True,
-        centre_gate_px: float = 2.0,
-    ) -> None:
-        self._nominal = nominal_focal_of_width
-        self.hold_keyframes = hold_keyframes
-        self.centre_from_calibration = centre_from_calibration
-        self.joint_bundle = joint_bundle
-        self.centre_gate_px = float(centre_gate_px)
-        self.centre: Array | None = None  # distortion centre from the joint adjustment (None: image centre)
-        self._estimate: Any = None  # the session solver's last LensEstimate taken
-        self.centre_updates = 0
-        self.lens: LensCorrection | None = None
-        self._reference: str | None = None
-        self._queue: deque[tuple[int, int, Array, Array, bool]] = deque(maxlen=4 * resend)
-        self._session: Any = None  # the session of the last `work` (joint mode: raw matches go to it)
-        self._early_links: dict[int, tuple[int, Array, Array]] = {}  # matches before their keyframe
-        self._raw_matches: deque[tuple[int, int, Array, Array]] = deque(maxlen=resend)
-        self._size: tuple[int, int] | None = None
-        self.held_keyframes = 0
-        self.uncorrectable_frames = 0  # calibrated session, frame the lens correction cannot correct
-
-    def _ensure(self, reference: str, width: int, height: int) -> LensCorrection | None:
-        if width <= 0 or height <= 0:
-            return self.lens
-        if self.lens is None or self._size != (width, height) or reference != self._reference:
-            # new map or new image size: the tracker's keyframe ids and homographies start afresh
-            self.lens = LensCorrection(width, height, float(self._nominal(width)))
-            self._size, self._reference = (width, height), reference
-            self._queue.clear()
-            self._raw_matches.clear()
-            self._early_links.clear()
-            self.centre = None
-        return self.lens
-
-    def frame(
-        self,
-        H: Array | None,
-        state: str,
-        keyframe_id: int,
-        reference: str,
-        width: int,
-        height: int,
-        calibrated: bool = False,
-    ) -> tuple[Array | None, str]:
-        """The frame's homography on corrected coordinates, and its tracking state.
-
-        `calibrated`: the session already holds a calibration (on corrected coordinates) for this
-        reference. A raw homography must then never reach it (on the issue-6 lens that is a 40-60 %
-        focal error): a frame the correction cannot reach (its state is not persisted, so after a
-        restart on a restored tracker map it starts empty) goes out without a homography, K from the
-        zoom model.
-        """
-        lens = self._ensure(reference, width, height)
-        if lens is None or H is None or not np.all(np.isfinite(H)):
-            return H, state
-        kid = int(keyframe_id)
-        if state == "NEW_KEYFRAME":
-            lens.add_keyframe(kid, H)
-            waiting = self._early_links.pop(kid, None)
-            if waiting is not None:  # its matches came first
-                self._link_now(lens, kid, *waiting)
-        corrected = lens.frame_homography(H, kid)
-        if corrected is not None:
-            return corrected, state
-        if calibrated:
-            self.uncorrectable_frames += 1
-            return None, "TRACKING_LOST"
-        if self.hold_keyframes and state == "NEW_KEYFRAME" and kid != lens.reference_id:
-            self.held_keyframes += 1
-            return H, "TRACKING"
-        return H, state
-
-    def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
-        m = (int(keyframe_id), int(other_keyframe_id), pts, other_pts)
-        lens = self.lens
-        if lens is not None and self.joint_bundle:
-            child, parent, pc, pp = m if m[0] > m[1] else (m[1], m[0], m[3], m[2])
-            self._link_now(lens, child, parent, pc, pp)
-        session, forwarded = self._session, False
-        if self.joint_bundle and session is not None:
-            # raw points are what the adjustment takes: on to the session at once, so that a new
-            # keyframe's frames reach a solved keyframe through this link before the worker runs
-            forwarded = bool(session.add_keyframe_matches(*m, None))
-        self._queue.append((*m, forwarded))
-
-    def work(self, session: Any) -> bool:
-        """Worker step; True when the distortion estimate changed."""
-        lens = self.lens
-        if lens is None:
-            return False
-        self._session = session
-        while self._queue:
-            *m, forwarded = self._queue.popleft()
-            if lens.add_match(*m):
-                self._raw_matches.append(tuple(m))
-            if self.joint_bundle and not forwarded:
-                session.add_keyframe_matches(*m, None)
-        moved = self._take_joint_estimate(session, lens)
-        if lens.pending == 0 and not moved:
-            return False
-        calibrator = getattr(session, "calibrator", None)
-        if calibrator is not None:
-            if getattr(calibrator, "calibrated", False) and lens.reference_id is not None:
-                K = calibrator.reference_K
-                lens.set_keyframe(lens.reference_id, K[0, 0], self._centre(K))
-            solved = set()
-            for kf in list(getattr(calibrator, "keyframes", [])):
-                if kf.K is not None:
-                    lens.set_keyframe(int(kf.keyframe_id), kf.K[0, 0], self._centre(kf.K))
-                    solved.add(int(kf.keyframe_id))
-            # the other keyframes (held, dropped, not solved yet): the reference calibration (or the
-            # prior) transferred through their corrected chain, eq. 20
-            snap = lens.snapshot
-            for kid, H in ({} if snap is None else snap.H).items():
-                if kid in solved or kid == lens.reference_id:
-                    continue
-                try:
-                    K = calibrator.frame_intrinsics(H)[0]
-                except (SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError):
-                    continue
-                if np.all(np.isfinite(K)):
-                    lens.set_keyframe(kid, K[0, 0], self._centre(K))
-        if not lens.update(force=moved):
-            return False
-        snap = lens.snapshot
-        assert snap is not None
-        # the session's keyframes were stored with the correction known when they arrived: give them
-        # their chains recomputed with the new estimate (the worker owns the calibrator here)
-        if calibrator is not None:
-            for kf in list(getattr(calibrator, "keyframes", [])):
-                H = snap.H.get(int(kf.keyframe_id))
-                if H is not None:
-                    kf.H = H
-            changed = getattr(session, "keyframe_homographies_changed", None)
-            if changed is not None:
-                changed()
-        if self.joint_bundle:  # the adjustment fits the distortion itself: the raw points went already
-            return True
-        for i, j, a, b in self._raw_matches:
-            H_i, H_j = snap.H.get(i), snap.H.get(j)
-            link = None if H_i is None or H_j is None else H_i @ np.linalg.inv(H_j)
-            session.add_keyframe_matches(i, j, lens.undistort_points(i, a), lens.undistort_points(j, b), link)
-        return True
-
-    def _link_now(self, lens: LensCorrection, child: int, parent: int, pc: Array, pp: Array) -> None:
-        """provisional_link, or kept for the keyframe's NEW_KEYFRAME homography when the matches
-        arrive before it (the two topics are not ordered)."""
-        if child not in lens._H_raw:
-            self._early_links[child] = (parent, pc, pp)
-            while len(self._early_links) > 16:
-                self._early_links.pop(next(iter(self._early_links)))
-            return
-        with contextlib.suppress(ValueError, ArithmeticError, np.linalg.LinAlgError):
-            lens.provisional_link(child, parent, pc, pp)
-
-    def _take_joint_estimate(self, session: Any, lens: LensCorrection) -> bool:
-        """With joint_bundle: plug the distortion guess into the session's solver (its adjustment then
-        runs on raw points, bundle/adjust.py distortion=True) and take its principal point as the
-        distortion centre, and its coefficients, once its 1-sigma is below centre_gate_px; True when
-        they changed."""
-        solver = getattr(session, "solver", None)
-        if not self.joint_bundle or solver is None:
-            return False
-        solver.lens = self
-        estimate = getattr(solver, "lens_estimate", None)
-        if estimate is None or estimate is self._estimate:
-            return False
-        self._estimate = estimate
-        pp = np.asarray(estimate.principal_point, dtype=float)
-        sigma = np.asarray(estimate.sigma_pp, dtype=float)
-        if not (np.all(np.isfinite(pp)) and np.all(np.isfinite(sigma)) and sigma.max() < self.centre_gate_px):
-            return False
-        moved = self.centre is None or float(np.hypot(*(pp - self.centre))) > 0.1
-        self.centre = pp
-        if moved:
-            self.centre_updates += 1
-            lens.set_centre(pp)
-        # its coefficients too (about that centre): they come from the raw points of every keyframe
-        # of the solve (issue-6 bag offline: distortion error 0.04 px)
-        return lens.set_joint(dict(estimate.focal), dict(estimate.lam)) or moved
+    correction: LensCorrection
+    snapshot: LensSnapshot | None
 
     def lam_guess(self, keyframe_id: int | None, f: float) -> float:
-        """The division coefficient of a keyframe (None: the reference) at focal length f from the
-        current estimate (its pixel-space kappa, else the lam(f) curve); 0.0 before any."""
-        lens = self.lens
-        snap = None if lens is None else lens.snapshot
-        if lens is None or snap is None:
+        """The keyframe's division coefficient at focal length f: its pixel-space kappa (or an
+        ancestor's, carried over the zoom), else the lam(f) curve; 0.0 before any estimate."""
+        snap = self.snapshot
+        if snap is None:
             return 0.0
-        kid = lens.reference_id if keyframe_id is None else int(keyframe_id)
+        kid = self.correction.reference_id if keyframe_id is None else int(keyframe_id)
         if kid is None:
             return snap.lam_at(f)
-        return float(lens._kappa_for(snap, kid)[0]) * f * f
+        return float(self.correction.kappa_for(snap, kid)[0]) * f * f
 
     def keyframe_homography(self, keyframe_id: int) -> Array | None:
         """The corrected H reference -> keyframe, chained or provisional (None: neither yet)."""
-        lens = self.lens
-        snap = None if lens is None else lens.snapshot
-        if lens is None or snap is None:
+        snap = self.snapshot
+        if snap is None:
             return None
         H = snap.H.get(int(keyframe_id))
         if H is None:
-            chained = lens._provisional_chain(snap, int(keyframe_id))
+            chained = self.correction.provisional_chain(snap, int(keyframe_id))
             H = None if chained is None else normalise_homography(chained[0])
         return H
 
     def distort(self, keyframe_id: int | None, pts: ArrayLike) -> Array:
-        """Corrected pixels of a keyframe (None: the reference) back to raw ones with the model that
-        corrected them (identity before the first estimate)."""
-        lens = self.lens
+        """Corrected pixels of a keyframe back to raw ones with the model that corrected them
+        (identity before the first estimate)."""
         p = np.asarray(pts, dtype=float).reshape(-1, 2)
-        snap = None if lens is None else lens.snapshot
-        if lens is None or snap is None:
+        snap = self.snapshot
+        if snap is None:
             return p
-        kid = lens.reference_id if keyframe_id is None else int(keyframe_id)
+        kid = self.correction.reference_id if keyframe_id is None else int(keyframe_id)
         if kid is None:
             return p
-        kappa, c = lens._kappa_for(snap, kid)
+        kappa, c = self.correction.kappa_for(snap, kid)
         return p if kappa == 0.0 else division_distort(p, kappa, c, 1.0)
-
-    def _centre(self, K: Array) -> Array | None:
-        # the distortion centre and the principal point are nearly interchangeable in rotation-only
-        # data when estimated apart (the estimate follows the assumed centre), so feeding the
-        # calibrated principal point back drifts; the joint adjustment's centre (gated) is used when
-        # there is one, else the image centre (None)
-        if self.joint_bundle:
-            return self.centre
-        return K[:2, 2] if self.centre_from_calibration else None
-
-    def distortion(self, K: Array) -> Array:
-        return np.zeros(5) if self.lens is None else self.lens.plumb_bob(K)

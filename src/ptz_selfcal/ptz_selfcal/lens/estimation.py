@@ -11,7 +11,7 @@ transfer error over one division-model coefficient per keyframe and one homograp
 option (one kappa per image) but on homographies instead of the full bundle adjustment: the homography
 absorbs K and R, so the problem is small and well conditioned. Optionally the coefficients are tied by
 the distortion-versus-focal curve (the paper's second option, eq. 35, with a better-behaved curve):
-see `DistortionVsFocal`.
+see lens/curve.DistortionVsFocal; lens/estimator.py is the incremental seam for the calibrator.
 
 Seams for the calibrator: everything is expressed with dimensionless lam on radius / f; the image data
 constrain the pixel-unit coefficient lam / f^2, so if f is refined later, `rescale_lambda` converts.
@@ -23,14 +23,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptz_selfcal.camera.distortion import division_undistort, half_diagonal
+from ptz_selfcal.camera.distortion import division_undistort, lambda_of_corner_shift_derivative
 from ptz_selfcal.camera.geometry import apply_homography, pixel_grid
 from ptz_selfcal.frontend.homography import estimate_homography, homography_dlt
+from ptz_selfcal.lens.curve import DistortionVsFocal
 
 Array = NDArray[np.float64]
 
@@ -102,9 +103,9 @@ def undistorted_homography(
     """Approximate route when only a homography fitted to DISTORTED points is available.
 
     A grid of image-i pixels is mapped through H_distorted, both ends are undistorted and a homography
-    refitted. The result inherits H_distorted's misfit to the true (non-projective) distorted mapping:
-    about 1 px at the wide end of the issue's lens against 10-60 px without correction. Prefer
-    `undistorted_homography_from_points` whenever the inliers are at hand.
+    refitted. The result inherits H_distorted's misfit to the true (non-projective) distorted mapping,
+    far smaller than the distortion it removes but not zero. Prefer `undistorted_homography_from_points`
+    whenever the inliers are at hand.
     """
     grid = pixel_grid(width, height, count)
     mapped = apply_homography(H_distorted, grid)
@@ -116,148 +117,6 @@ def undistorted_homography(
     src = division_undistort(grid[keep], lam_i, centre_i, f_i)
     dst = division_undistort(mapped[keep], lam_j, centre_j, f_j)
     return estimate_homography(src, dst)
-
-
-# --------------------------------------------------------------------------------------------------
-# Distortion-versus-focal curve
-# --------------------------------------------------------------------------------------------------
-def _robust_polynomial(A: Array, s: Array, w: Array, threshold: float) -> tuple[Array, float]:
-    """Weighted Huber IRLS fit s ~ A c; returns c and the weighted robust residual sum of squares."""
-    robust = np.ones_like(s)
-    coeffs = np.zeros(A.shape[1])
-    for _ in range(10):
-        sw = np.sqrt(w * robust)
-        coeffs = np.linalg.lstsq(A * sw[:, None], s * sw, rcond=None)[0]
-        res = np.abs(A @ coeffs - s)
-        robust = np.where(res <= threshold, 1.0, threshold / np.maximum(res, 1e-15))
-    return coeffs, float(np.sum(w * robust * (A @ coeffs - s) ** 2))
-
-
-class DistortionVsFocal:
-    """lam(f) through the corner shift s (distortion %, as lens data sheets quote it) versus 1/f.
-
-    s(f) = c0 + c1 u + c2 u^2,  u = f_ref / f  (field of view), and lam = -s / ((1 + s) (D / f)^2) with
-    D the image half-diagonal (division_lambda_for_corner_shift). Why this curve and not eq. 35's cubic
-    in f: a zoom lens's distortion is a smooth function of the field of view, strongest (barrel) at the
-    wide end and fading, often through zero, towards the tele end; a polynomial in 1/f is low order for
-    that behaviour and stays bounded as f grows, where a cubic in f explodes. Outside the fitted range
-    s is extrapolated proportionally to 1/f (distortion fades with the field of view), never by the
-    polynomial. The fit is weighted, robust (Huber IRLS); the degree (at most `degree`) is chosen by
-    BIC, and reduced when the focal range seen so far cannot support it.
-    """
-
-    def __init__(self, width: int, height: int, degree: int = 2, f_ref: float | None = None) -> None:
-        self.half_diagonal = half_diagonal(width, height)
-        self.degree = degree
-        self.f_ref = f_ref
-        self.coefficients: Array | None = None
-        self.f_range: tuple[float, float] | None = None
-        self.residual_rms: float = float("nan")
-
-    # conversions between lam and the corner shift s at focal length f
-    def shift_from_lambda(self, f: ArrayLike, lam: ArrayLike) -> Array:
-        rho2 = (self.half_diagonal / np.asarray(f, dtype=float)) ** 2
-        return 1.0 / (1.0 + np.asarray(lam, dtype=float) * rho2) - 1.0
-
-    def lambda_from_shift(self, f: ArrayLike, shift: ArrayLike) -> Array:
-        rho2 = (self.half_diagonal / np.asarray(f, dtype=float)) ** 2
-        s = np.asarray(shift, dtype=float)
-        return -s / ((1.0 + s) * rho2)
-
-    def fit(
-        self, f: ArrayLike, lam: ArrayLike, weights: ArrayLike | None = None, huber_px: float = 1.0
-    ) -> DistortionVsFocal:
-        """Fit from per-keyframe (f, lam) estimates; weights = 1 / sigma^2 of lam (or None).
-
-        huber_px: the Huber threshold in pixels of corner displacement (robust against bad keyframes).
-        """
-        f = np.asarray(f, dtype=float).ravel()
-        lam = np.asarray(lam, dtype=float).ravel()
-        ok = np.isfinite(f) & np.isfinite(lam) & (f > 0)
-        w = np.ones_like(f) if weights is None else np.asarray(weights, dtype=float).ravel()
-        ok &= np.isfinite(w) & (w > 0)
-        f, lam, w = f[ok], lam[ok], w[ok]
-        if len(f) == 0:
-            raise ValueError("no valid samples")
-        if self.f_ref is None:
-            self.f_ref = float(f.min())
-        u = self.f_ref / f
-        s = self.shift_from_lambda(f, lam)
-        # weights on s: d s / d lam = -rho^2 / (1 + lam rho^2)^2, so sigma_s = |ds/dlam| sigma_lam
-        rho2 = (self.half_diagonal / f) ** 2
-        w = w / (rho2 / (1.0 + lam * rho2) ** 2) ** 2
-        w = w / w.max()
-        distinct = len(np.unique(np.round(u, 3)))
-        span = u.max() - u.min()
-        max_degree = max(min(self.degree, distinct - 1, 1 if span < 0.15 else self.degree), 0)
-        threshold = huber_px / self.half_diagonal
-        # degree by BIC (unknown noise level): n ln(RSS / n) + (d + 1) ln n, each fit robust
-        best: tuple[float, Array, Array] | None = None
-        n = len(s)
-        for degree in range(max_degree + 1):
-            if degree > 0 and n < degree + 3:
-                break
-            A = np.vander(u, degree + 1, increasing=True)
-            coeffs, rss = _robust_polynomial(A, s, w, threshold)
-            bic = n * np.log(max(rss / n, 1e-300)) + (degree + 1) * np.log(n)
-            if best is None or bic < best[0]:
-                best = (bic, coeffs, A)
-        assert best is not None
-        _, coeffs, A = best
-        self.coefficients = np.concatenate([coeffs, np.zeros(self.degree + 1 - len(coeffs))])
-        self.f_range = (float(f.min()), float(f.max()))
-        self.residual_rms = float(np.sqrt(np.mean((A @ coeffs - s) ** 2)) * self.half_diagonal)
-        return self
-
-    def predict_shift(self, f: ArrayLike) -> Array:
-        if self.coefficients is None or self.f_range is None or self.f_ref is None:
-            raise RuntimeError("DistortionVsFocal is not fitted")
-        f = np.asarray(f, dtype=float)
-        u = self.f_ref / f
-        u_lo, u_hi = self.f_ref / self.f_range[1], self.f_ref / self.f_range[0]
-        u_b = np.clip(u, u_lo, u_hi)
-        s_b = np.polynomial.polynomial.polyval(u_b, self.coefficients)
-        return s_b * (u / u_b)  # proportional to 1/f outside the fitted range
-
-    def predict(self, f: ArrayLike) -> Array:
-        """lam at focal length(s) f."""
-        return self.lambda_from_shift(f, self.predict_shift(f))
-
-    def in_range(self, f: float) -> bool:
-        return self.f_range is not None and self.f_range[0] <= f <= self.f_range[1]
-
-    def fitted(self) -> bool:
-        return self.coefficients is not None
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain YAML-able state (for the calibrator's state file)."""
-        return {
-            "half_diagonal": self.half_diagonal,
-            "degree": self.degree,
-            "f_ref": self.f_ref,
-            "coefficients": None if self.coefficients is None else [float(c) for c in self.coefficients],
-            "f_range": None if self.f_range is None else [float(v) for v in self.f_range],
-            "residual_rms": self.residual_rms,
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> DistortionVsFocal:
-        """Inverse of to_dict; ValueError on invalid content."""
-        try:
-            curve = cls(1, 1, int(data["degree"]), None if data["f_ref"] is None else float(data["f_ref"]))
-            curve.half_diagonal = float(data["half_diagonal"])
-            if data["coefficients"] is not None:
-                curve.coefficients = np.array([float(c) for c in data["coefficients"]])
-                lo, hi = (float(v) for v in data["f_range"])
-                curve.f_range = (lo, hi)
-            curve.residual_rms = float(data.get("residual_rms", float("nan")))
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"invalid DistortionVsFocal state: {exc}") from exc
-        if curve.coefficients is not None and (
-            len(curve.coefficients) != curve.degree + 1 or not np.all(np.isfinite(curve.coefficients))
-        ):
-            raise ValueError("invalid DistortionVsFocal coefficients")
-        return curve
 
 
 # --------------------------------------------------------------------------------------------------
@@ -475,9 +334,7 @@ def estimate_keyframe_distortion(
         """(n_kf, n_dist) derivative of the keyframe coefficients w.r.t. the distortion parameters."""
         if curve is None:
             return selection
-        shift = V @ p
-        rho2 = (curve.half_diagonal / focals) ** 2
-        return (-1.0 / ((1.0 + shift) ** 2 * rho2))[:, None] * V
+        return lambda_of_corner_shift_derivative(V @ p, curve.half_diagonal / focals)[:, None] * V
 
     def evaluate(x: Array, with_jacobian: bool) -> tuple[Array, list[tuple[Array, Array]]]:
         """Residuals and, per match, (column indices, Jacobian block) of the block-sparse Jacobian."""
@@ -640,9 +497,7 @@ def _curve_lambda_sigmas(cov: Array, focals: Array, curve: DistortionVsFocal, co
     assert curve.f_ref is not None
     V = np.vander(curve.f_ref / focals, len(coeffs), increasing=True)
     sigma_s = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", V, cov, V), 0.0))
-    s = V @ coeffs
-    rho2 = (curve.half_diagonal / focals) ** 2
-    return sigma_s / ((1.0 + s) ** 2 * rho2)  # |d lam / d s| = 1 / ((1 + s)^2 rho^2)
+    return -sigma_s * lambda_of_corner_shift_derivative(V @ coeffs, curve.half_diagonal / focals)
 
 
 def estimate_pair_distortion(
@@ -712,124 +567,3 @@ def estimate_frame_distortion(
     return PairDistortion(
         float(out.lam[0]), float(out.lam[1]), out.homographies[0], out.rms, 0.0, float(out.sigma_lam[1])
     )
-
-
-# --------------------------------------------------------------------------------------------------
-# Incremental use by the calibrator
-# --------------------------------------------------------------------------------------------------
-class KeyframeDistortionEstimator:
-    """Stateful seam for the calibrator: keyframe matches in, per-keyframe lam and lam(f) out.
-
-    - add_match(id_i, id_j, pts_i, pts_j): inlier correspondences between two keyframes (distorted
-      full-resolution pixels, e.g. from the tracker's KeyframeMatches); subsampled to
-      max_points_per_match, at most max_matches kept (oldest dropped: bounded memory and solve time).
-    - set_keyframe(id, f, centre): the calibrator's current focal length and principal point of a
-      keyframe (the distortion centre). Estimates are kept as pixel-space kappa = lam / f^2, the
-      quantity the images constrain, so refining f later changes lam consistently (rescale_lambda).
-    - solve(): joint estimation (estimate_keyframe_distortion), then the DistortionVsFocal curve fitted
-      robustly to the per-keyframe estimates (and to a bounded history of keyframes already dropped).
-    - lam(id), lam_at_focal(f): for correcting keyframe points and, through the curve, any frame.
-    The curve is a function of f, so a keyframe's estimate joins it at the focal length last set for
-    it: keep set_keyframe up to date (a dropped keyframe keeps the focal length it had).
-    """
-
-    def __init__(
-        self,
-        width: int,
-        height: int,
-        max_matches: int = 40,
-        max_points_per_match: int = 300,
-        history: int = 200,
-        seed: int = 0,
-    ) -> None:
-        self.width, self.height = width, height
-        self.max_matches = max_matches
-        self.max_points_per_match = max_points_per_match
-        self.history = history
-        self._rng = np.random.default_rng(seed)
-        self._matches: list[KeyframeMatch] = []  # i, j are keyframe ids here
-        self._focal: dict[int, float] = {}
-        self._centre: dict[int, Array] = {}
-        self._kappa: dict[int, float] = {}  # lam / f^2
-        self._sigma_kappa: dict[int, float] = {}
-        self._retired: list[tuple[float, float, float]] = []  # (f, lam, sigma_lam) of dropped keyframes
-        self.curve = DistortionVsFocal(width, height)
-        self.last: KeyframeDistortion | None = None
-
-    @property
-    def match_count(self) -> int:
-        return len(self._matches)
-
-    def set_keyframe(self, keyframe_id: int, f: float, centre: ArrayLike) -> None:
-        self._focal[int(keyframe_id)] = float(f)
-        self._centre[int(keyframe_id)] = np.asarray(centre, dtype=float).reshape(2)
-
-    def add_match(self, id_i: int, id_j: int, pts_i: ArrayLike, pts_j: ArrayLike) -> None:
-        pts_i = np.asarray(pts_i, dtype=float).reshape(-1, 2)
-        pts_j = np.asarray(pts_j, dtype=float).reshape(-1, 2)
-        if len(pts_i) != len(pts_j) or int(id_i) == int(id_j):
-            raise ValueError("a match needs two different keyframes and equal point counts")
-        if len(pts_i) > self.max_points_per_match:
-            keep = np.sort(self._rng.choice(len(pts_i), self.max_points_per_match, replace=False))
-            pts_i, pts_j = pts_i[keep], pts_j[keep]
-        self._matches.append(KeyframeMatch(int(id_i), int(id_j), pts_i, pts_j))
-        dropped: set[int] = set()
-        while len(self._matches) > self.max_matches:
-            old = self._matches.pop(0)
-            dropped |= {old.i, old.j}
-        used = {m.i for m in self._matches} | {m.j for m in self._matches}
-        for kid in dropped - used:
-            self._retire(kid)
-
-    def _retire(self, kid: int) -> None:
-        """A keyframe no match refers to any more: keep its estimate for the curve, forget the rest."""
-        f = self._focal.pop(kid, None)
-        self._centre.pop(kid, None)
-        kappa, sigma = self._kappa.pop(kid, None), self._sigma_kappa.pop(kid, np.inf)
-        if f is not None and kappa is not None and np.isfinite(sigma):
-            self._retired.append((f, kappa * f * f, sigma * f * f))
-            self._retired = self._retired[-self.history :]
-
-    def solve(self, min_matches: int = 1) -> KeyframeDistortion | None:
-        """Re-estimate every keyframe's lam and the curve; None if too little data (or no focals yet)."""
-        usable = [
-            m for m in self._matches if m.i in self._focal and m.j in self._focal and len(m.pts_i) >= 12
-        ]
-        if len(usable) < min_matches:
-            return None
-        ids = sorted({m.i for m in usable} | {m.j for m in usable})
-        index = {kid: n for n, kid in enumerate(ids)}
-        focals = np.array([self._focal[k] for k in ids])
-        centres = np.array([self._centre[k] for k in ids])
-        lam0 = np.array([self._initial_lambda(k) for k in ids])
-        matches = [KeyframeMatch(index[m.i], index[m.j], m.pts_i, m.pts_j) for m in usable]
-        result = estimate_keyframe_distortion(matches, focals, centres, lam0=lam0)
-        for n, kid in enumerate(ids):
-            f2 = focals[n] ** 2
-            self._kappa[kid] = float(result.lam[n] / f2)
-            self._sigma_kappa[kid] = float(result.sigma_lam[n] / f2)
-        f_all = np.concatenate([focals, [r[0] for r in self._retired]])
-        lam_all = np.concatenate([result.lam, [r[1] for r in self._retired]])
-        sigma_all = np.concatenate([result.sigma_lam, [r[2] for r in self._retired]])
-        ok = np.isfinite(sigma_all) & (sigma_all > 0)
-        if ok.any():
-            self.curve.fit(f_all[ok], lam_all[ok], 1.0 / sigma_all[ok] ** 2)
-        self.last = result
-        return result
-
-    def _initial_lambda(self, kid: int) -> float:
-        f = self._focal[kid]
-        if kid in self._kappa:
-            return self._kappa[kid] * f * f
-        return float(self.curve.predict(f)) if self.curve.fitted() else 0.0
-
-    def lam(self, keyframe_id: int) -> float | None:
-        """The keyframe's lam at its current focal length (None before its first solve)."""
-        kid = int(keyframe_id)
-        if kid not in self._kappa or kid not in self._focal:
-            return None
-        return self._kappa[kid] * self._focal[kid] ** 2
-
-    def lam_at_focal(self, f: float) -> float:
-        """lam of any frame from the curve (0.0 before the first solve)."""
-        return float(self.curve.predict(f)) if self.curve.fitted() else 0.0

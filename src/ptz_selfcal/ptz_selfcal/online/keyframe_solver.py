@@ -7,8 +7,9 @@ import contextlib
 import dataclasses
 import math
 from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass
-from typing import Any
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +26,7 @@ from ptz_selfcal.camera.intrinsics import (
     SelfCalibrationError,
     image_centre,
 )
+from ptz_selfcal.lens.interface import LensEstimate, LensModel
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.incremental import Keyframe
 from ptz_selfcal.selfcal.degeneracy import STATUS_NEAR_AMBIGUOUS
@@ -54,42 +56,52 @@ class KeyframeBundleSolver:
     reference (grid points visible in both) so that it stays in the adjustment. When the adjustment
     fails or is not better posed, the LM result is returned.
 
-    Radial distortion (lens/correction.SessionLensHook sets `lens`): the matches are then RAW
+    Radial distortion (`set_lens_model`, a lens/interface.LensModel such as LensCorrection.view(),
+    handed over by lens/hook.SessionLensHook after each worker step): the matches are then RAW
     (distorted) pixels and the adjustment estimates one division coefficient per frame about the
     principal point with everything else (bundle/adjust.py, distortion=True), starting from
-    lens.lam_guess(keyframe_id, f); a frame's virtual correspondences (its homography is on corrected
-    pixels) are distorted back with the lens model that corrected it, lens.distort(keyframe_id, pts),
-    so that they stand for the raw points and carry no assumption about the distortion centre.
-    The prior of eq. 27 is weighed with the image noise of the previous accepted solve (its residual
-    standard deviation, within [0.02, ba_noise_sigma_px]), with or without distortion: tracked matches
-    fit to ~0.05-0.15 px, and a prior weighed for the printed 1 px noise acts as a ~10x too strong
-    prior that pulls the principal point (and, near the ambiguity of a long focal length, f) to the
-    image centre. `lens_estimate` keeps the last such solution for the hook. Keyframe id None = the reference.
-    A fixed lens's solves after the first start the adjustment from the previous one (_warm_start)
-    rather than from LM, and its lens-model check runs only when the session asks for it.
+    lam_guess(keyframe_id, f); a frame's virtual correspondences (its homography is on corrected
+    pixels) are distorted back with the lens model that corrected it, distort(keyframe_id, pts), so
+    that they stand for the raw points and carry no assumption about the distortion centre. Each solve
+    uses the model set when it starts. The prior of eq. 27 is weighed with the image noise of the
+    previous accepted solve (its residual standard deviation, within [0.02, ba_noise_sigma_px]), with
+    or without distortion: tracked matches fit far better than the nominal 1 px, and a prior weighed
+    for that noise is too strong and pulls the principal point (and, near the ambiguity of a long
+    focal length, f) to the image centre. `lens_estimate` keeps the last such solution for the hook.
+    Keyframe id None = the reference. A fixed lens's solves after the first start the adjustment from
+    the previous one (_warm_start) rather than from LM, and its lens-model check
+    (`measure_lens_model_change`) runs only when the session asks for it.
     """
 
     def __init__(self, config: SessionConfig, matches: OrderedDict[tuple[int, int], KeyframeMatchSet]):
         self.config = config
         self.matches = matches
         self.reference_keyframe_id: int | None = None
-        self.rotations: dict[Any, Array] = {}  # keyframe id -> R relative to the reference (last solve)
+        self.rotations: dict[Hashable, Array] = {}  # keyframe id -> R relative to the reference (last solve)
         self.last_method = ""
         self.last_message = ""
-        self.sigma_f: dict[Any, float] = {}  # keyframe id -> 1-sigma of f in the last accepted solve
-        self.lens: Any = None  # lam_guess(keyframe_id, f), distort(keyframe_id, pts); None: undistorted
+        self.sigma_f: dict[Hashable, float] = {}  # keyframe id -> 1-sigma of f in the last accepted solve
+        self._lens: LensModel | None = None  # None: homographies and matches are undistorted
         self.lens_estimate: LensEstimate | None = None
         self.noise_estimate: float | None = None  # px, residual sigma of the last accepted solve
         self.distortion_mode = "curve"  # lam per frame on a lam(f) curve ("curve") or free ("frame")
         # a fixed lens with estimate_distortion: the one division coefficient and its 1-sigma
         self.shared_lam: float | None = None
         self.sigma_shared_lam = math.nan
-        # a fixed lens: see _lens_model_change (last solve), measured when first asked for (the
-        # session asks only when the solve could otherwise be CONVERGED)
+        # a fixed lens: see measure_lens_model_change (last solve), measured when first asked for
+        # (the session asks only when the solve could otherwise be CONVERGED)
         self._lens_model_change_value = math.nan
-        self._lens_check: tuple | None = None  # the solve's inputs until it is measured
+        self._lens_check: _LensCheck | None = None  # the solve's inputs until it is measured
         # a fixed lens: the last adjustment (reference keyframe id, K, keyframe id -> R), _warm_start
-        self._warm: tuple[Any, Array, dict[Any, Array]] | None = None
+        self._warm: tuple[Hashable, Array, dict[Hashable, Array]] | None = None
+
+    def set_lens_model(self, model: LensModel | None) -> None:
+        """The lens model the next solves start from (None: undistorted input)."""
+        self._lens = model
+
+    @property
+    def lens_model(self) -> LensModel | None:
+        return self._lens
 
     def __call__(
         self,
@@ -100,20 +112,21 @@ class KeyframeBundleSolver:
         keyframes: list[Keyframe],
         max_nfev: int,
     ) -> SelfCalibrationResult:
-        if self.lens is not None:
+        lens = self._lens  # this solve's lens model
+        if lens is not None:
             # the keyframes' homographies as the lens correction has them now (chained or provisional):
             # the ones stored at arrival may come from an older correction, and the frames are
-            # corrected with the current one (a stale keyframe homography put its frames 1% off)
+            # corrected with the current one (a stale keyframe homography puts its frames off)
             H = H.copy()
             for i, kf in enumerate(keyframes, start=1):
-                H_now = self.lens.keyframe_homography(kf.keyframe_id)
+                H_now = lens.keyframe_homography(kf.keyframe_id)
                 if H_now is not None and np.all(np.isfinite(H_now)):
                     kf.H = H[i] = H_now
         result = None
-        warm = self._warm_start(H, keyframes)
+        warm = self._warm_start(H, keyframes, lens)
         if warm is not None:
             self.last_method, self.last_message = warm.method, ""
-            result = self._refine(H, image_size, warm, keyframes)
+            result = self._refine(H, image_size, warm, keyframes, lens)
             if result is warm or not usable_result(result):
                 result = None  # LM on eq. 22 and the adjustment from it, as for the first solve
         if result is None:
@@ -121,7 +134,7 @@ class KeyframeBundleSolver:
             # evaluation budget (which also counts the adjustment) would stop it short of convergence
             lm = lm_selfcalibration(H, image_size, model, K_init, max_nfev=max(int(max_nfev), 100))
             self.last_method, self.last_message = lm.method, lm.message
-            result = self._refine(H, image_size, lm, keyframes)
+            result = self._refine(H, image_size, lm, keyframes, lens)
         self._keep_warm_start(result, keyframes)
         if result.ok:
             self.rotations = {kf.keyframe_id: R for kf, R in zip(keyframes, result.R[1:])}
@@ -130,18 +143,20 @@ class KeyframeBundleSolver:
             self.sigma_f = {k: float(s) for k, s in zip(ids, np.ravel(result.sigma_f)) if k is not None}
         return result
 
-    def _warm_start(self, H: Array, keyframes: list[Keyframe]) -> SelfCalibrationResult | None:
+    def _warm_start(
+        self, H: Array, keyframes: list[Keyframe], lens: LensModel | None
+    ) -> SelfCalibrationResult | None:
         """A fixed lens: the adjustment's start from its previous solution instead of LM on eq. 22.
 
-        LM on a hand-held pan's homographies is 8-18% off in f (the real sets), so an adjustment
-        started there spends 10-30 iterations walking back to where the previous one ended; one more
+        LM on a hand-held pan's homographies is several per cent off in f, so an adjustment started
+        there spends many iterations walking back to where the previous one ended, while one more
         still moves the solution by a fraction of a per cent. K is the previous adjustment's, each
         keyframe it held keeps its rotation, a new keyframe gets the rotation of its homography
         relative to the nearest held one (the direct link, not the chain from the reference). None
         (LM as for the first solve) for a zooming lens, without a previous adjustment, or when it
         holds none of these keyframes.
         """
-        if not (self.config.fixed_lens and self.lens is None and self.config.bundle_adjustment):
+        if not (self.config.fixed_lens and lens is None and self.config.bundle_adjustment):
             return None
         warm = self._warm
         ids = [kf.keyframe_id for kf in keyframes]
@@ -183,29 +198,34 @@ class KeyframeBundleSolver:
         self._warm = None
 
     def _refine(
-        self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
+        self,
+        H: Array,
+        image_size: tuple[int, int],
+        lm: SelfCalibrationResult,
+        keyframes: list[Keyframe],
+        lens: LensModel | None,
     ) -> SelfCalibrationResult:
         self._lens_model_change_value, self._lens_check = math.nan, None  # this solve's, if any
         # raw-point solve: an LM start flagged only for its motion (section 6.2, LM on corrected
         # homographies) is still refined, the adjustment's own analysis decides
         # a fixed lens likewise: LM on homographies of a pan flags a near-ambiguity that the
-        # adjustment on the point matches resolves (measured on the real hand-held sets)
+        # adjustment on the point matches can resolve
         usable = lm.ok or (
-            (self.lens is not None or self.config.fixed_lens)
+            (lens is not None or self.config.fixed_lens)
             and bool(lm.info.get("solver_ok", False))
             and bool(np.all(np.isfinite(lm.K)))
         )
         if not usable or not self.config.bundle_adjustment:
             return lm
         try:
-            ba = self._bundle(H, image_size, lm, keyframes)
+            ba = self._bundle(H, image_size, lm, keyframes, lens)
         except (SelfCalibrationError, ValueError, np.linalg.LinAlgError) as exc:
             self.last_message = f"bundle adjustment skipped: {exc}"
             return lm
         if ba is not None and self.config.fixed_lens and uncertain_motion(ba):
             # a fixed lens: the adjustment's near-ambiguity verdict (6.2) stands, with its own estimate
-            # (uncertain: DEGENERATE_MOTION), rather than LM's confident one on homographies
-            # (the real sets before their loop closes: LM 8-18% off with a 1-2% sigma)
+            # (uncertain: DEGENERATE_MOTION), rather than LM's confident one on homographies (before
+            # a hand-held pan's loop closes LM is off by several times its own sigma)
             ba.info["solver_ok"] = True
             self.last_method = ba.method
             ba.method = f"{lm.method}+{ba.method}"
@@ -220,7 +240,12 @@ class KeyframeBundleSolver:
         return ba
 
     def _bundle(
-        self, H: Array, image_size: tuple[int, int], lm: SelfCalibrationResult, keyframes: list[Keyframe]
+        self,
+        H: Array,
+        image_size: tuple[int, int],
+        lm: SelfCalibrationResult,
+        keyframes: list[Keyframe],
+        lens: LensModel | None,
     ) -> SelfCalibrationResult | None:
         index = {kf.keyframe_id: i + 1 for i, kf in enumerate(keyframes)}
         if self.reference_keyframe_id is not None:
@@ -228,11 +253,11 @@ class KeyframeBundleSolver:
         ids = [self.reference_keyframe_id, *(kf.keyframe_id for kf in keyframes)]
         n_frames = len(H)
         fixed = self.config.fixed_lens
-        shared = fixed and self.config.estimate_distortion and self.lens is None
+        shared = fixed and self.config.estimate_distortion and lens is None
         lam0 = None
-        if self.lens is not None:
-            lm = self._with_connectors(lm, index, ids, image_size)
-            lam0 = np.array([_guess(self.lens.lam_guess, k, float(K[1, 1])) for k, K in zip(ids, lm.K)])
+        if lens is not None:
+            lm = self._with_connectors(lm, index, ids, image_size, lens)
+            lam0 = np.array([_guess(lens, k, float(K[1, 1])) for k, K in zip(ids, lm.K)])
         elif shared:  # raw matches, one coefficient for the lens (section 7), from the last estimate
             lam0 = np.full(len(lm.K), self.shared_lam or 0.0)
         rng = np.random.default_rng(0)
@@ -271,9 +296,9 @@ class KeyframeBundleSolver:
             else:
                 dst = apply_homography(H[j], grid)
                 pairs.append((0, j, *_visible(grid, dst, width, height)))
-            if self.lens is not None:  # the homographies are on corrected pixels: distort the points
+            if lens is not None:  # the homographies are on corrected pixels: distort the points
                 a, b, src, dst = pairs[-1]
-                src, dst = self.lens.distort(ids[a], src), self.lens.distort(ids[b], dst)
+                src, dst = lens.distort(ids[a], src), lens.distort(ids[b], dst)
                 ok = np.isfinite(src).all(axis=1) & np.isfinite(dst).all(axis=1)
                 pairs[-1] = (a, b, src[ok], dst[ok])
         if lam0 is not None:
@@ -337,7 +362,7 @@ class KeyframeBundleSolver:
         rel_sigma = float(np.ravel(result.sigma_f)[0]) / float(result.K[0, 1, 1])
         if fixed and usable_result(result) and rel_sigma <= self.config.converged_max_sigma_f:
             # only when it can decide (above that sigma the solution is not CONVERGED anyway)
-            self._lens_check = (pairs, result, image_size, model, prior, noise)
+            self._lens_check = _LensCheck(pairs, result, image_size, model, prior, noise)
         if absent or len(lm.K) > n_frames:
             # the frames left out: LM's focal length and rotation, the adjusted principal point
             K, R = lm.K.copy(), lm.R.copy()
@@ -348,7 +373,7 @@ class KeyframeBundleSolver:
                 if j >= n_frames or len(near) == 0:
                     continue
                 # from the nearest adjusted frame through the short corrected homography between them
-                # (LM's own K carries the long chain's drift: 1.5% on the issue-6 bag)
+                # (LM's own K carries the long chain's drift)
                 k = int(near[np.argmin(np.abs(near - j))])
                 H_kj = H[j] @ np.linalg.inv(H[k])
                 with contextlib.suppress(
@@ -376,11 +401,10 @@ class KeyframeBundleSolver:
             )
         return result
 
-    @property
-    def lens_model_change(self) -> float:
+    def measure_lens_model_change(self) -> float:
         """A fixed lens: |f' / f - 1| of the last solve (_lens_model_change), NaN when not measured.
-        The second adjustment runs on the first request after the solve: the session asks for it only
-        when the solve could otherwise be published as CONVERGED."""
+        Runs the second adjustment on the first call after the solve and returns that value until the
+        next solve: the session asks only when the solve could otherwise be published as CONVERGED."""
         if self._lens_check is not None:
             check, self._lens_check = self._lens_check, None
             self._lens_model_change_value = self._lens_model_change(*check)
@@ -399,10 +423,10 @@ class KeyframeBundleSolver:
         (one shared coefficient added when it is not estimated, removed when it is), started at the
         solution. The disambiguating information of section 6.2 sits at the image edges, where the
         lens model acts (section 7): a focal length that moves with the lens model is not pinned by
-        the geometry (the real hand-held sets before their loop closes: 13-20 %; after: < 1 %). At
-        most 6 iterations, and it stops once f has moved by twice converged_max_lens_model_change
-        (the verdict is made: 3-6 % after one or two iterations there), so a value above the bound
-        is how far f moved at least. NaN when the alternative does not solve."""
+        the geometry (a hand-held pan before its loop closes, not after). At most 6 iterations, and
+        it stops once f has moved by twice converged_max_lens_model_change (the verdict is made), so
+        a value above the bound is how far f moved at least. NaN when the alternative does not
+        solve."""
         with_distortion = not self.config.estimate_distortion
         try:
             alt = bundle_adjust(
@@ -415,8 +439,8 @@ class KeyframeBundleSolver:
                 pp_prior=prior,
                 noise_sigma=noise,
                 max_iterations=min(self.config.ba_max_iterations, 6),
-                # bundle_adjust's default damping: the solution is far from the alternative's minimum
-                # (from 1e-9 two of every three steps were refused: 3x the Schur solves, real sets)
+                # bundle_adjust's default damping: the solution is far from the alternative's minimum,
+                # where a tiny initial damping has most steps refused
                 distortion="shared" if with_distortion else False,
                 analyse=False,
                 max_focal_change=2.0 * self.config.converged_max_lens_model_change,
@@ -428,7 +452,12 @@ class KeyframeBundleSolver:
         return abs(f_alt / f - 1.0) if alt.ok and math.isfinite(f_alt) else math.nan
 
     def _with_connectors(
-        self, lm: SelfCalibrationResult, index: dict[Any, int], ids: list[Any], image_size: tuple[int, int]
+        self,
+        lm: SelfCalibrationResult,
+        index: dict[Hashable, int],
+        ids: list[Hashable],
+        image_size: tuple[int, int],
+        lens: LensModel,
     ) -> SelfCalibrationResult:
         """Raw-point solve: keyframes the calibrator dropped but matched to one it kept join the
         adjustment as connectors (appended to index and ids, started from their corrected chain by
@@ -438,7 +467,7 @@ class KeyframeBundleSolver:
             for inside, other in ((m.keyframe_id, m.other_keyframe_id), (m.other_keyframe_id, m.keyframe_id)):
                 if inside not in index or other in index or len(m.points) < 8:
                     continue
-                H_c = self.lens.keyframe_homography(other)
+                H_c = lens.keyframe_homography(other)
                 if H_c is None:
                     continue
                 try:
@@ -465,15 +494,15 @@ class KeyframeBundleSolver:
         )
 
 
-@dataclass(frozen=True)
-class LensEstimate:
-    """Distortion from the keyframe adjustment on raw points: the principal point (= distortion centre)
-    with its 1-sigma, and each frame's division coefficient lam at its focal length."""
+class _LensCheck(NamedTuple):
+    """A fixed lens's solve, kept for measure_lens_model_change (its adjustment's inputs and result)."""
 
-    principal_point: Array
-    sigma_pp: Array
-    lam: dict[int, float]
-    focal: dict[int, float]
+    pairs: list[tuple[int, int, Array, Array]]
+    result: SelfCalibrationResult
+    image_size: tuple[int, int]
+    model: IntrinsicsModel
+    prior: tuple[Array, Array]
+    noise: float
 
 
 def _linked_to_reference(pairs: list[tuple[int, int, Array, Array]], n: int) -> NDArray[np.bool_]:
@@ -511,9 +540,10 @@ def uncertain_motion(result: SelfCalibrationResult) -> bool:
     )
 
 
-def _guess(guess: Any, keyframe_id: int | None, f: float) -> float:
+def _guess(lens: LensModel, keyframe_id: int | None, f: float) -> float:
+    """The lens model's starting lam of a frame (0.0 where it has none that is finite)."""
     try:
-        lam = float(guess(keyframe_id, f))
+        lam = float(lens.lam_guess(keyframe_id, f))
     except (ValueError, ArithmeticError, KeyError):
         return 0.0
     return lam if math.isfinite(lam) else 0.0
