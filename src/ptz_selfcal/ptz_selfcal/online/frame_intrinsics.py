@@ -19,6 +19,7 @@ from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.work import CalibrationSnapshot
 from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
 from ptz_selfcal.status import CalibrationStatus
+from ptz_selfcal.zoom.model import ZoomModel
 
 Array = NDArray[np.float64]
 
@@ -146,3 +147,41 @@ def last_good_output(last: FrameOutput) -> FrameOutput:
         keyframe_count=last.keyframe_count,
         source="last_good",
     )
+
+
+def zoom_output(
+    zoom_model: ZoomModel | None, frame: FrameInput, zoom_rate: float, status: str, keyframe_count: int
+) -> FrameOutput | None:
+    """The zoom model's calibration at the frame's zoom encoder (None without a model or an encoder);
+    the model's own errors propagate."""
+    if not math.isfinite(frame.zoom) or zoom_model is None:
+        return None
+    K, D, sigma_f, _ = zoom_model.predict(float(frame.zoom), zoom_rate)
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0:
+        return None
+    return FrameOutput(
+        status=status,
+        K=np.asarray(K, dtype=float),
+        D=np.nan_to_num(np.asarray(D, dtype=float).reshape(5)),
+        R=None,
+        sigma_f=float(sigma_f),
+        sigma_cx=math.nan,
+        sigma_cy=math.nan,
+        residual=math.nan,
+        keyframe_id=int(frame.keyframe_id),
+        keyframe_count=keyframe_count,
+        source="zoom_model",
+    )
+
+
+def initialising_reason(snap: CalibrationSnapshot | None, held: int, config: SessionConfig) -> str:
+    """Why there is no calibration yet, for FrameCalibration users and logs."""
+    reason = ""
+    if snap is not None:
+        reason = f"{snap.keyframe_count - 1} of min_keyframes {config.min_keyframes} keyframes"
+    if held:
+        reason += (", " if reason else "") + (
+            f"{held} keyframes held out of the solve: the image moved faster than "
+            f"max_keyframe_motion {config.max_keyframe_motion:g} image widths/s"
+        )
+    return reason

@@ -15,6 +15,7 @@ import copy
 import math
 import time
 from collections import OrderedDict, deque
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,10 +23,12 @@ from numpy.typing import NDArray
 from ptz_selfcal.camera.geometry import intrinsic_matrix, rotation_from_homography
 from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.online.config import SessionConfig
+from ptz_selfcal.online.frames import FrameOutput
 from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
 from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult, ZoomTable
+from ptz_selfcal.persist.session_state import SavedState, load_zoom_model, state_to_dict
 from ptz_selfcal.status import CalibrationStatus
 from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
 
@@ -308,9 +311,43 @@ class KeyframeCalibration:
         """A zoom lens's distortion (K -> plumb_bob D) for the zoom model's samples."""
         self._plumb_bob = PlumbBob(distortion)
 
-    def set_zoom_model(self, model: ZoomModel, ready: bool) -> None:
-        """A loaded zoom model (state restore)."""
+    # ---- persistence (persist/session_state.py) --------------------------------------------------
+    def to_dict(
+        self, image_size: tuple[int, int] | None, reference_id: str | None, last_good: FrameOutput | None
+    ) -> dict:
+        """The state file's mapping, with the frame path's part given."""
+        return state_to_dict(
+            image_size,
+            reference_id,
+            last_good,
+            self.calibrator,
+            self.solver,
+            self.keyframe_zoom,
+            self.sampled_keyframes,
+            self.config.focal_model,
+        )
+
+    def restore(self, saved: SavedState) -> None:
+        self.image_size = saved.image_size
+        self.solver.reference_keyframe_id = saved.reference_keyframe_id
+        self.calibrator = saved.calibrator
+        self.keyframe_zoom = saved.keyframe_zoom
+        self.sampled_keyframes = saved.sampled_keyframes
+        fixed_distortion = self.config.fixed_lens and self.config.estimate_distortion
+        self.solver.shared_lam = saved.shared_lam if fixed_distortion else None
+        self.solver.noise_estimate = saved.noise_estimate
+        self.solver.forget_warm_start()
+
+    def restore_zoom_model(self, path: Path) -> list[str]:
+        """Load the saved zoom model; log lines ("WARNING: ..." first). Live samples of keyframes the
+        restored calibration still holds stay live (its next solve refreshes them); without one they
+        become history and a new calibration (scale) begins."""
+        keep = None
+        if self.calibrator is not None:
+            keep = {kf.keyframe_id for kf in self.calibrator.keyframes} | {self.solver.reference_keyframe_id}
+        model, ready, messages = load_zoom_model(path, keep)
         self.zoom_model, self.zoom_ready, self._zoom_changed = model, ready, True
+        return messages
 
     # ----------------------------------------------------------------------------------------------
     def result(self) -> WorkResult:

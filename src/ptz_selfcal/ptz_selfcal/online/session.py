@@ -37,8 +37,10 @@ from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frame_intrinsics import (
     KeyframeLinks,
     frame_intrinsics,
+    initialising_reason,
     last_good_output,
     nominal_output,
+    zoom_output,
 )
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.gates import MotionGate, ZoomVerdict, usable_homography, zoom_gate
@@ -48,7 +50,7 @@ from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMat
 from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult
 from ptz_selfcal.persist.atomic_file import remove_stale_temporaries
-from ptz_selfcal.persist.session_state import state_from_dict, state_to_dict, write_state
+from ptz_selfcal.persist.session_state import state_from_dict, write_state
 from ptz_selfcal.persist.state_files import STATE_FILE, ZOOM_MODEL_FILE, StateFileError, load_yaml_file
 from ptz_selfcal.status import HOMOGRAPHY_STATES, CalibrationStatus, TrackingState
 from ptz_selfcal.zoom import ZoomModel, ZoomModelError, ZoomRate
@@ -182,7 +184,7 @@ class CalibratorSession:
         if snap is not None and snap.message:
             out.message = snap.message
         elif status == _S.INITIALISING:
-            out.message = self._initialising_reason(snap)
+            out.message = initialising_reason(snap, self._counters["fast_motion_keyframes"], self.config)
         return out
 
     def _keyframe_added(
@@ -204,19 +206,6 @@ class CalibratorSession:
             self._pending.append(
                 PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom), self._zoom_rate)
             )
-
-    def _initialising_reason(self, snap: CalibrationSnapshot | None) -> str:
-        """Why there is no calibration yet, for FrameCalibration users and logs."""
-        held = self._counters["fast_motion_keyframes"]
-        reason = ""
-        if snap is not None:
-            reason = f"{snap.keyframe_count - 1} of min_keyframes {self.config.min_keyframes} keyframes"
-        if held:
-            reason += (", " if reason else "") + (
-                f"{held} keyframes held out of the solve: the image moved faster than "
-                f"max_keyframe_motion {self.config.max_keyframe_motion:g} image widths/s"
-            )
-        return reason
 
     def _calibrated_output(
         self, snap: CalibrationSnapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float
@@ -289,28 +278,12 @@ class CalibratorSession:
         return nominal_output(self.config, size, frame, status, count)
 
     def _predict_from_zoom(self, frame: FrameInput, status: str) -> FrameOutput | None:
-        if not math.isfinite(frame.zoom) or self._zoom is None:
-            return None
+        count = self._snapshot.keyframe_count if self._snapshot else 0
         try:
-            K, D, sigma_f, _ = self._zoom.predict(float(frame.zoom), self._zoom_rate)
+            return zoom_output(self._zoom, frame, self._zoom_rate, status, count)
         except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
             self._warn(f"zoom model prediction failed: {exc}")
             return None
-        if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0:
-            return None
-        return FrameOutput(
-            status=status,
-            K=np.asarray(K, dtype=float),
-            D=np.nan_to_num(np.asarray(D, dtype=float).reshape(5)),
-            R=None,
-            sigma_f=float(sigma_f),
-            sigma_cx=math.nan,
-            sigma_cy=math.nan,
-            residual=math.nan,
-            keyframe_id=int(frame.keyframe_id),
-            keyframe_count=self._snapshot.keyframe_count if self._snapshot else 0,
-            source="zoom_model",
-        )
 
     def add_keyframe_matches(
         self,
@@ -394,37 +367,20 @@ class CalibratorSession:
     # ---- persistence -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """What a restart needs (persist/session_state.py); reads both halves."""
-        c = self.calibration
-        return state_to_dict(
-            self.image_size,
-            self.reference_id,
-            self.last_good,
-            c.calibrator,
-            c.solver,
-            c.keyframe_zoom,
-            c.sampled_keyframes,
-            self.config.focal_model,
-        )
+        return self.calibration.to_dict(self.image_size, self.reference_id, self.last_good)
 
     def load_dict(self, data: dict) -> None:
         """Restore from `to_dict` output; StateFileError when it does not fit."""
-        c = self.calibration
-        saved = state_from_dict(data, self.config.focal_model, c.solver)
-        self.image_size = c.image_size = saved.image_size
-        self.reference_id = saved.reference_id
-        c.solver.reference_keyframe_id = saved.reference_keyframe_id
-        c.calibrator = saved.calibrator
-        c.keyframe_zoom = saved.keyframe_zoom
-        c.sampled_keyframes = saved.sampled_keyframes
-        c.solver.shared_lam = (
-            saved.shared_lam if self.config.fixed_lens and self.config.estimate_distortion else None
+        saved = state_from_dict(data, self.config.focal_model, self.solver)
+        self.calibration.restore(saved)
+        self.image_size, self.reference_id, self.last_good = (
+            saved.image_size,
+            saved.reference_id,
+            saved.last_good,
         )
-        c.solver.noise_estimate = saved.noise_estimate
-        c.solver.forget_warm_start()
         self._seen_keyframes = set(saved.keyframe_zoom)
-        self.last_good = saved.last_good
         if saved.calibrator is not None:
-            self.accept(c.result())
+            self.accept(self.calibration.result())
 
     def save(self) -> list[str]:
         """Save the state and the zoom model atomically into state_dir; returns the files written."""
@@ -468,27 +424,7 @@ class CalibratorSession:
                 )
         except StateFileError as exc:
             messages.append(f"WARNING: ignoring calibration state {path} ({exc}); starting fresh")
-        zpath = self.state_dir / ZOOM_MODEL_FILE
-        model, problem = ZoomModel.load_or_new(zpath)
-        # live samples of keyframes the restored calibration still holds stay live (its next solve
-        # refreshes them); without it they become history and a new calibration (scale) begins
-        if c.calibrator is not None:
-            model.commit_live(
-                keep={kf.keyframe_id for kf in c.calibrator.keyframes} | {c.solver.reference_keyframe_id}
-            )
-        else:
-            model.new_calibration()
-        ready = False
-        if problem is not None:
-            messages.append(f"WARNING: ignoring zoom model {zpath} ({problem}); learning a new one")
-        elif not model.is_empty():
-            try:
-                model.predict(float(np.mean(model.covered_range())))
-                ready = True
-                messages.append(f"loaded zoom model from {zpath} (zoom range {model.covered_range()})")
-            except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
-                messages.append(f"WARNING: zoom model {zpath} not usable ({exc})")
-        c.set_zoom_model(model, ready)
+        messages += c.restore_zoom_model(self.state_dir / ZOOM_MODEL_FILE)
         self.accept(c.result())
         return messages
 

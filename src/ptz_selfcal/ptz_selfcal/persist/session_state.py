@@ -22,7 +22,7 @@ from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver
 from ptz_selfcal.persist.atomic_file import atomic_write_text
 from ptz_selfcal.persist.state_files import STATE_FILE, STATE_VERSION, ZOOM_MODEL_FILE, StateFileError
 from ptz_selfcal.status import CalibrationStatus
-from ptz_selfcal.zoom.model import ZoomModel
+from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
 
 
 @dataclass(frozen=True)
@@ -138,6 +138,25 @@ def write_state(state_dir: Path, data: dict, zoom_model: ZoomModel | None) -> li
         zoom_model.save(state_dir / ZOOM_MODEL_FILE)
         written.append(str(state_dir / ZOOM_MODEL_FILE))
     return written
+
+
+def load_zoom_model(path: Path, keep: set | None) -> tuple[ZoomModel, bool, list[str]]:
+    """The saved zoom model, whether it predicts, and log lines ("WARNING: ..." first). `keep`: the live
+    samples of a restored calibration's keyframes stay live; None: they all become history."""
+    model, problem = ZoomModel.load_or_new(path)
+    if keep is not None:
+        model.commit_live(keep=keep)
+    else:
+        model.new_calibration()
+    if problem is not None:
+        return model, False, [f"WARNING: ignoring zoom model {path} ({problem}); learning a new one"]
+    if model.is_empty():
+        return model, False, []
+    try:
+        model.predict(float(np.mean(model.covered_range())))
+    except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
+        return model, False, [f"WARNING: zoom model {path} not usable ({exc})"]
+    return model, True, [f"loaded zoom model from {path} (zoom range {model.covered_range()})"]
 
 
 def _plain(value: Any) -> Any:
