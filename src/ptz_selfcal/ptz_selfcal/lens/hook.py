@@ -195,8 +195,9 @@ class SessionLensHook:
         try:
             return self._work(session, lens)
         finally:
-            if self.joint_bundle:
-                session.solver.set_lens_model(lens.view())
+            current = self.lens  # the frame thread may have started a new map's correction meanwhile
+            if self.joint_bundle and current is not None:
+                session.solver.set_lens_model(current.view())
 
     def _work(self, session: LensSession, lens: LensCorrection) -> bool:
         while self._queue:
