@@ -27,7 +27,6 @@ import logging
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import cv2
 import numpy as np
@@ -53,6 +52,7 @@ from ptz_selfcal.frontend.keyframe_links import (
     make_link,
 )
 from ptz_selfcal.frontend.tracker_config import TrackerConfig
+from ptz_selfcal.frontend.tracker_map import StoredKeyframe, TrackerMap
 from ptz_selfcal.status import TrackingState
 
 Array = NDArray[np.float64]
@@ -130,32 +130,32 @@ class HomographyTracker:
         """Index of the last frame tracked (-1 before the first); the next frame gets this + 1."""
         return self._frame_index
 
-    def export_map(self) -> dict[str, Any] | None:
+    def export_map(self) -> TrackerMap | None:
         """The keyframe map as plain data for restore_map (None while there is no map).
 
         Cheap (no copies: a keyframe's arrays are never modified once stored), so it can be taken on the
         frame path and serialised (map_to_bytes) elsewhere."""
         if self._reference_id is None or self._scale is None or self._keyframe_id not in self._keyframes:
             return None
-        return {
-            "reference_id": self._reference_id,
-            "keyframe_id": self._keyframe_id,
-            "frame_index": self._frame_index,
-            "scale": self._scale,
-            "keyframes": [
-                {
-                    "id": kf.id,
-                    "stamp": kf.stamp,
-                    "H_ref": kf.H_ref,
-                    "depth": kf.depth,
-                    "image": kf.image,
-                    "corners": kf.corners,
-                }
+        return TrackerMap(
+            reference_id=self._reference_id,
+            keyframe_id=self._keyframe_id,
+            frame_index=self._frame_index,
+            scale=self._scale,
+            keyframes=[
+                StoredKeyframe(
+                    id=kf.id,
+                    stamp=kf.stamp,
+                    H_ref=kf.H_ref,
+                    depth=kf.depth,
+                    image=kf.image,
+                    corners=kf.corners,
+                )
                 for kf in self._keyframes.values()
             ],
-        }
+        )
 
-    def restore_map(self, data: dict[str, Any]) -> None:
+    def restore_map(self, data: TrackerMap) -> None:
         """Replace the map by an exported one (ValueError when it is inconsistent; the tracker is then
         reset). The next frame is relocalised against the stored keyframes (same reference and keyframe
         ids); frame ids continue after the stored frame index. Keyframes beyond max_keyframes are dropped

@@ -15,7 +15,7 @@ from __future__ import annotations
 import io
 import json
 import zlib
-from typing import Any
+from typing import Any, TypedDict
 
 import cv2
 import numpy as np
@@ -25,8 +25,30 @@ MAP_FORMAT = "ptz_selfcal.tracker_map"
 MAP_VERSION = 2
 
 
+class StoredKeyframe(TypedDict):
+    """One keyframe of an exported map (a MapKeyframe without its descriptors, recomputed on use)."""
+
+    id: int
+    stamp: float | None
+    H_ref: NDArray[np.float64]  # reference -> keyframe, full resolution
+    depth: int  # keyframe links between the reference and this keyframe
+    image: NDArray[np.uint8]  # working resolution, mono8
+    corners: NDArray[np.float32]  # working pixels
+
+
+class TrackerMap(TypedDict):
+    """The keyframe map as plain data: HomographyTracker.export_map gives it, restore_map and
+    map_to_bytes take it, map_from_bytes gives it back (to be checked by restore_map)."""
+
+    reference_id: int
+    keyframe_id: int
+    frame_index: int
+    scale: float  # working / full resolution
+    keyframes: list[StoredKeyframe]  # least recently used first
+
+
 def map_to_bytes(
-    data: dict[str, Any],
+    data: TrackerMap,
     extra: dict[str, Any] | None = None,
     cache: dict[tuple[int, int, tuple[int, ...]], bytes] | None = None,
 ) -> bytes:
@@ -83,7 +105,7 @@ def _decode_images(blob: NDArray[np.uint8], sizes: list[int]) -> NDArray[np.uint
     return np.stack(images)
 
 
-def map_from_bytes(blob: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
+def map_from_bytes(blob: bytes) -> tuple[TrackerMap, dict[str, Any]]:
     """(map for HomographyTracker.restore_map, extra) from map_to_bytes' blob; ValueError when it is not
     one (truncated, corrupt, another format or version, inconsistent sizes)."""
     try:
@@ -108,19 +130,24 @@ def map_from_bytes(blob: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
             raise ValueError("corner counts do not match the corners")
         splits = np.split(corners, np.cumsum(counts)[:-1]) if n else []
         keyframes = [
-            {
-                "id": ids[i],
-                "stamp": meta["stamps"][i],
-                "H_ref": H_ref[i],
-                "depth": meta["depths"][i],
-                "image": images[i],
-                "corners": splits[i],
-            }
+            StoredKeyframe(
+                id=ids[i],
+                stamp=meta["stamps"][i],
+                H_ref=H_ref[i],
+                depth=meta["depths"][i],
+                image=images[i],
+                corners=splits[i],
+            )
             for i in range(n)
         ]
-        data = {key: meta[key] for key in ("reference_id", "keyframe_id", "frame_index", "scale")}
+        data = TrackerMap(
+            reference_id=meta["reference_id"],
+            keyframe_id=meta["keyframe_id"],
+            frame_index=meta["frame_index"],
+            scale=meta["scale"],
+            keyframes=keyframes,
+        )
     except (KeyError, TypeError) as exc:
         raise ValueError(f"malformed tracker map metadata: {type(exc).__name__}: {exc}") from exc
-    data["keyframes"] = keyframes
     extra = meta.get("extra") or {}
     return data, extra if isinstance(extra, dict) else {}

@@ -41,7 +41,7 @@ from rclpy.node import Node
 from ptz_selfcal import topics
 from ptz_selfcal.frontend.tracker import HomographyTracker, TrackResult
 from ptz_selfcal.frontend.tracker_config import TRACKER_CHOICES, TrackerConfig
-from ptz_selfcal.frontend.tracker_map import map_from_bytes, map_to_bytes
+from ptz_selfcal.frontend.tracker_map import TrackerMap, map_from_bytes, map_to_bytes
 from ptz_selfcal.nodes.conversions import (
     TRACKING_STATE_TO_MSG,
     ConfigError,
@@ -196,7 +196,7 @@ class HomographyTrackerNode(Node):
         self._map_path = Path(p["state_dir"]) / MAP_FILE if p["state_dir"] else None
         self._save_period = float(p["save_period"])
         self._save_wake = threading.Condition()
-        self._save_pending: tuple[dict[str, Any], dict[str, Any]] | None = None
+        self._save_pending: tuple[TrackerMap, dict[str, Any]] | None = None
         self._save_stop = False
         self._saver: threading.Thread | None = None
         self._png_cache: dict[Any, bytes] = {}  # keyframe images encoded by earlier saves (saver thread)
