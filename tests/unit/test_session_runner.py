@@ -13,7 +13,7 @@ from test_calibration_state import HEIGHT, WIDTH, feed, sweep
 from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput
-from ptz_selfcal.online.session import CalibratorSession
+from ptz_selfcal.online.session import CalibratorSession, Phase
 from ptz_selfcal.online.work import WorkBatch, WorkResult
 from ptz_selfcal.status import CALIBRATED, CalibrationStatus, TrackingState
 
@@ -125,3 +125,22 @@ def test_a_reset_during_a_solve_never_publishes_the_old_reference(converged) -> 
         out, _ = runner.process(frame)
         assert out.status not in CALIBRATED, (j, out.status, out.source)
         assert out.source != "calibration"
+
+
+def test_the_session_phase_follows_its_events(converged) -> None:
+    """NO_REFERENCE -> REFERENCED (a reference's first homography) -> CALIBRATED (a calibrated result)
+    -> NO_REFERENCE (the reference changed); tracking lost changes no phase."""
+    session, _, H, f = converged
+    assert session.phase is Phase.CALIBRATED
+    session.process(FrameInput(20.0, None, TrackingState.TRACKING_LOST, WIDTH, HEIGHT, zoom=float(f[5])))
+    assert session.phase is Phase.CALIBRATED
+    session.process(FrameInput(21.0, np.eye(3), TrackingState.NEW_KEYFRAME, WIDTH, HEIGHT, 7000, "other"))
+    assert session.phase is Phase.REFERENCED  # the change reset it, the frame referenced the new map
+    fresh = CalibratorSession(
+        SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
+    assert fresh.phase is Phase.NO_REFERENCE
+    feed(fresh, H, f, frames=range(9))
+    assert fresh.phase is Phase.REFERENCED
+    feed(fresh, H, f, frames=range(9, 120))
+    assert fresh.phase is Phase.CALIBRATED

@@ -22,6 +22,7 @@ homography and no zoom model: the last good K).
 from __future__ import annotations
 
 import contextlib
+import enum
 import math
 import os
 import time
@@ -61,6 +62,17 @@ _S = CalibrationStatus
 _TRANSFER_ERRORS = (SelfCalibrationError, ValueError, np.linalg.LinAlgError)
 
 
+class Phase(enum.Enum):
+    """Where the session is with the current reference. Events move it: the first homography of a
+    reference (NO_REFERENCE -> REFERENCED), a result whose snapshot is calibrated (-> CALIBRATED), the
+    reference changing (-> NO_REFERENCE, a new epoch). A frame's status follows from the phase and
+    the fallback that served it; tracking lost changes no phase."""
+
+    NO_REFERENCE = "no_reference"
+    REFERENCED = "referenced"
+    CALIBRATED = "calibrated"
+
+
 class CalibratorSession:
     """One camera's self-calibration over a run (see the module docstring)."""
 
@@ -91,6 +103,7 @@ class CalibratorSession:
         self._pending: list[PendingKeyframe] = []
         self._pending_matches: list[KeyframeMatchSet] = []
         self.reference_id: str | None = None
+        self.phase = Phase.NO_REFERENCE
         self.image_size: tuple[int, int] | None = None
         self.last_good: FrameOutput | None = None
         self._links = KeyframeLinks()
@@ -141,12 +154,15 @@ class CalibratorSession:
             )
         if self.reference_id is None:
             self.reference_id = frame.reference_id
+            if self.phase is Phase.NO_REFERENCE:
+                self.phase = Phase.REFERENCED
             self._frame_dirty = True
         kid = int(frame.keyframe_id)
         fast = self._motion.fast(self.reference_id, frame.stamp, H, self.image_size)
         snap = self._snapshot
         calibrated = None
-        if snap is not None and snap.calibrated:
+        if self.phase is Phase.CALIBRATED:
+            assert snap is not None
             try:
                 K, R, sigma_f = frame_intrinsics(snap, H, kid, self._links)
                 if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
@@ -340,6 +356,10 @@ class CalibratorSession:
             self._zoom = result.zoom_model if result.zoom_ready else None
         if result.snapshot is not None:
             self._snapshot = result.snapshot
+            if result.snapshot.calibrated:
+                self.phase = Phase.CALIBRATED
+            elif self.phase is Phase.CALIBRATED:
+                self.phase = Phase.REFERENCED
         return True
 
     def step(self, max_seconds: float) -> bool:
@@ -359,6 +379,7 @@ class CalibratorSession:
         self._epoch += 1
         self._snapshot = None
         self.reference_id = None
+        self.phase = Phase.NO_REFERENCE
         self._seen_keyframes.clear()
         self._links.forget_reference()
         self._motion.forget()
@@ -379,6 +400,7 @@ class CalibratorSession:
             saved.last_good,
         )
         self._seen_keyframes = set(saved.keyframe_zoom)
+        self.phase = Phase.NO_REFERENCE if saved.reference_id is None else Phase.REFERENCED
         if saved.calibrator is not None:
             self.accept(self.calibration.result())
 
