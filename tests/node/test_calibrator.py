@@ -69,20 +69,20 @@ class Harness:
         self.frames: dict[int, FrameCalibration] = {}
         self.info_count: dict[int, int] = {}
         self.diagnostics: list[DiagnosticArray] = []
-        self.node.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info, reliable_qos())
+        self.node.create_subscription(CameraInfo, topics.CAMERA_INFO, self.on_info, reliable_qos())
         self.node.create_subscription(
-            FrameCalibration, topics.FRAME_CALIBRATION, self._on_frame, reliable_qos()
+            FrameCalibration, topics.FRAME_CALIBRATION, self.on_frame, reliable_qos()
         )
         self.node.create_subscription(
             DiagnosticArray, topics.DIAGNOSTICS, self.diagnostics.append, reliable_qos(50)
         )
 
-    def _on_info(self, msg: CameraInfo) -> None:
+    def on_info(self, msg: CameraInfo) -> None:
         ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
         self.infos[ns] = msg
         self.info_count[ns] = self.info_count.get(ns, 0) + 1
 
-    def _on_frame(self, msg: FrameCalibration) -> None:
+    def on_frame(self, msg: FrameCalibration) -> None:
         self.frames[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec] = msg
 
     def spin_until(self, predicate, timeout: float) -> bool:
@@ -357,8 +357,8 @@ def _namespaced_harness(ns: str) -> Harness:
     harness.pub = node.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
     harness.kf_pub = node.create_publisher(KeyframeMatches, topics.KEYFRAMES, reliable_qos())
     harness.infos, harness.frames, harness.info_count, harness.diagnostics = {}, {}, {}, []
-    node.create_subscription(CameraInfo, topics.CAMERA_INFO, harness._on_info, reliable_qos())
-    node.create_subscription(FrameCalibration, topics.FRAME_CALIBRATION, harness._on_frame, reliable_qos())
+    node.create_subscription(CameraInfo, topics.CAMERA_INFO, harness.on_info, reliable_qos())
+    node.create_subscription(FrameCalibration, topics.FRAME_CALIBRATION, harness.on_frame, reliable_qos())
     node.create_subscription(
         DiagnosticArray,
         "/" + ns.strip("/") + topics.DIAGNOSTICS,

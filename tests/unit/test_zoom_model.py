@@ -491,7 +491,7 @@ def test_old_calibrations_merge_with_their_offsets_bounded_memory():
     for k, err in enumerate((0.003, -0.004, 0.002, -0.001)):
         model.set_live(live_samples(np.linspace(100.0 * k, 600.0 + 100.0 * k, 15), rel_error=err))
         model.new_calibration()
-    assert len({c for c, _ in model._bins}) <= 2 and model.sample_count == 60
+    assert len({b["calibration"] for b in model.to_dict()["bins"]}) <= 2 and model.sample_count == 60
     grid = np.linspace(0.0, 900.0, 91)
     err = np.abs([model.predict(z).K[0, 0] / float(f_true(z)) - 1.0 for z in grid])
     assert err.max() < 4e-3

@@ -157,7 +157,7 @@ class CalibratorNode(Node):
             self._warn_once("calibrator_error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
             lost = FrameInput(0.0, None, TrackingState.TRACKING_LOST, max(width, 1), max(height, 1))
             out = runner.nominal_output(lost, CalibrationStatus.TRACKING_LOST)
-        if msg.state == HomographyStamped.NEW_KEYFRAME:
+        if MSG_TO_TRACKING_STATE.get(msg.state) == TrackingState.NEW_KEYFRAME:
             runner.wake()  # the worker adds the keyframe and re-optimises
         self._publish(msg, out)
         if out.status != self._last_status:
