@@ -79,8 +79,13 @@ class LinkFrame:
     descriptors: Descriptors | None = None
 
 
-# A measured link with the keyframe it starts from and the working-resolution fit behind it.
-MeasuredLink = tuple[MapKeyframe, RobustFit, KeyframeLink]
+@dataclass(frozen=True)
+class MeasuredLink:
+    """A new keyframe's link with the keyframe it starts from and the working-resolution fit behind it."""
+
+    keyframe: MapKeyframe
+    fit: RobustFit
+    link: KeyframeLink
 
 
 def make_link(
@@ -142,7 +147,7 @@ class KeyframeLinker:
                 if off > tolerance and not (off <= loose and self.confirmed(kf, frame, fit.H)):
                     _LOG.debug("link %d -> frame %d contradicts the chain: dropped", kf.id, frame.index)
                     continue
-                return kf, fit, make_link(kf, fit, src, dst, frame.scale)
+                return MeasuredLink(kf, fit, make_link(kf, fit, src, dst, frame.scale))
             if attempt == 0 and rematch and not c.link_with_descriptors:
                 H_desc = self.descriptor_homography(kf, frame)  # photometric start failed: re-match
                 starts = [H_desc] if H_desc is not None else []

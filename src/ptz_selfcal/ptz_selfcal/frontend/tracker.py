@@ -18,7 +18,8 @@ the camera.
 Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
 
 The map persists through export_map()/restore_map() and frontend.tracker_map (a restarted tracker
-relocalises against it and keeps its reference and keyframe ids).
+relocalises against it and keeps its reference and keyframe ids). Links are measured by
+frontend.keyframe_links, the settings are frontend.tracker_config.TrackerConfig.
 """
 
 from __future__ import annotations
@@ -374,11 +375,12 @@ class HomographyTracker:
             )  # fmt: skip
         # The tracked fit is the parent link: its inliers were measured against the (warped) parent.
         tracks = self._tracks
-        links = [(parent, fit, make_link(parent, fit, tracks.in_keyframe, tracks.current, self._scale))]
+        parent_link = make_link(parent, fit, tracks.in_keyframe, tracks.current, self._scale)
+        links = [MeasuredLink(parent, fit, parent_link)]
         H_ref_guess = homography_work_to_full(fit.H, self._scale) @ parent.H_ref
         for kf, H_chain in self._older_candidates(image, H_ref_guess, parent.id):
             # Descriptor re-matching only while no link as close to the reference exists (bounded cost).
-            shortest = min(link_kf.depth for link_kf, _, _ in links)
+            shortest = min(measured.keyframe.depth for measured in links)
             linked = self._linker.link(
                 kf, self._frame, corners, H_chain, kf.depth < shortest, parent.depth + 1 + kf.depth
             )
@@ -427,7 +429,7 @@ class HomographyTracker:
         )
         if linked is None:
             return None
-        fit = linked[1]
+        fit = linked.fit
         # the keyframe's own corners seen in the frame become the tracks (as after a new keyframe)
         h, w = image.shape
         margin = c.klt_window // 2 + 1
@@ -489,7 +491,8 @@ class HomographyTracker:
         match_count: int,
     ) -> TrackResult:
         """Store the frame as a keyframe, chained through the link with the fewest hops to the reference."""
-        source, _, best = min(links, key=lambda item: (item[0].depth, -item[2].inlier_count))
+        chosen = min(links, key=lambda measured: (measured.keyframe.depth, -measured.link.inlier_count))
+        source, best = chosen.keyframe, chosen.link
         H_ref = best.H @ source.H_ref
         # the frame's descriptors, if relocalisation or re-matching computed them, are the keyframe's
         keyframe = self._add_keyframe(image, stamp, H_ref, source.depth + 1, corners, self._frame.descriptors)
@@ -498,7 +501,7 @@ class HomographyTracker:
             state=state, frame_index=self._frame_index, stamp=stamp, H_ref=H_ref, H_keyframe=np.eye(3),
             keyframe_id=keyframe.id, reference_id=self._reference_id, inlier_count=best.inlier_count,
             match_count=match_count, rms_transfer_error=best.rms_transfer_error,
-            links=tuple(replace(link, target_id=keyframe.id) for _, _, link in links),
+            links=tuple(replace(measured.link, target_id=keyframe.id) for measured in links),
         )  # fmt: skip
 
     def _add_keyframe(
@@ -552,9 +555,9 @@ class HomographyTracker:
             refined = None if H_desc is None else linker.photometric_link(kf, frame, corners, H_desc)
             if refined is not None:
                 fit, src, dst = refined
-                links = [(kf, fit, make_link(kf, fit, src, dst, self._scale))]
+                links = [MeasuredLink(kf, fit, make_link(kf, fit, src, dst, self._scale))]
                 # Also link older overlapping keyframes (fewer hops to the reference, loop closure).
-                H_ref_guess = links[0][2].H @ kf.H_ref
+                H_ref_guess = links[0].link.H @ kf.H_ref
                 for other, H_chain in self._older_candidates(image, H_ref_guess, kf.id):
                     hops = kf.depth + 1 + other.depth
                     linked = linker.link(other, frame, corners, H_chain, other.depth < kf.depth, hops)
