@@ -26,6 +26,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ptz_selfcal.bundle.observations import PreparedObservations
+from ptz_selfcal.camera.distortion import (
+    corner_shift_of_lambda,
+    lambda_of_corner_shift,
+    lambda_of_corner_shift_derivative,
+)
 from ptz_selfcal.camera.intrinsics import (
     ASPECT,
     CX,
@@ -170,9 +175,9 @@ class LamCurve:
         u = self.f_ref / f
         powers = u[:, None] ** np.arange(len(self.coefficients))[None]
         s = powers @ self.coefficients
-        rho2 = (self.half_diagonal / f) ** 2
-        lam = -s / ((1.0 + s) * rho2)
-        dlam_ds = -1.0 / ((1.0 + s) ** 2 * rho2)
+        rho = self.half_diagonal / f
+        lam = lambda_of_corner_shift(s, rho)
+        dlam_ds = lambda_of_corner_shift_derivative(s, rho)
         ds_du = (powers[:, :-1] * np.arange(1, len(self.coefficients))[None]) @ self.coefficients[1:]
         # lam = -s f^2 / ((1 + s) D^2): 2 lam / f at constant s, plus s's own change through u = f_ref / f
         dlam_df = 2.0 * lam / f + dlam_ds * ds_du * (-u / f)
@@ -182,8 +187,7 @@ class LamCurve:
     def fit(cls, f: Array, lam: Array, f_ref: float, half_diagonal: float, degree: int) -> LamCurve:
         """Least-squares coefficients through per-frame (f, lam) (the starting point)."""
         u = f_ref / f
-        rho2 = (half_diagonal / f) ** 2
-        s = 1.0 / (1.0 + lam * rho2) - 1.0
+        s = corner_shift_of_lambda(lam, half_diagonal / f)
         A = u[:, None] ** np.arange(degree + 1)[None]
         coefficients = np.linalg.lstsq(A, s, rcond=None)[0]
         return cls(coefficients, float(f_ref), float(half_diagonal))
