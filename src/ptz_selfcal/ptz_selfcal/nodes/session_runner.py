@@ -26,6 +26,7 @@ from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver
 from ptz_selfcal.online.session import CalibratorSession
 from ptz_selfcal.online.work import WorkBatch, WorkResult
+from ptz_selfcal.status import CALIBRATED
 
 Array = NDArray[np.float64]
 
@@ -72,7 +73,7 @@ class SessionView:
     @property
     def calibrated(self) -> bool:
         with self._lock:
-            return self._session.state in ("CALIBRATING", "CONVERGED")
+            return self._session.state in CALIBRATED
 
 
 class SessionRunner:
