@@ -26,7 +26,7 @@ from ptz_selfcal.camera.intrinsics import (
     parameters_from_intrinsics,
 )
 from ptz_selfcal.frontend.homography import estimate_homography
-from ptz_selfcal.selfcal.lm import _Eq22Problem, lm_selfcalibration
+from ptz_selfcal.selfcal.lm import Eq22Problem, lm_selfcalibration
 from ptz_selfcal.sim.synthetic import circle_rotations
 
 SIZE = (640, 480)
@@ -103,7 +103,7 @@ def test_analytic_jacobian_matches_finite_differences() -> None:
     )
     K, R = paper_sequence("A", n=6)
     H = reference_homographies(K, R) / 1000.0
-    problem = _Eq22Problem(H / np.cbrt(np.linalg.det(H))[:, None, None], model.normalised(SIZE, 640.0))
+    problem = Eq22Problem(H / np.cbrt(np.linalg.det(H))[:, None, None], model.normalised(SIZE, 640.0))
     p = np.random.default_rng(0).uniform(0.5, 1.5, problem.size)
     eps = 1e-7
     numeric = np.array(

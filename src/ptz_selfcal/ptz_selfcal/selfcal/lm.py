@@ -47,7 +47,7 @@ _COLS = np.array([0, 1, 2, 1, 2, 2])
 _WEIGHTS = np.sqrt(np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0]))
 
 
-class _Eq22Problem:
+class Eq22Problem:
     """Residuals and analytic Jacobian of eq. 22 for fixed normalised homographies and model."""
 
     def __init__(self, Hn: Array, model: IntrinsicsModel) -> None:
@@ -176,7 +176,7 @@ def lm_selfcalibration(
     N = normalising_transform(image_centre(image_size), nominal)
     Hn = normalise_homographies(H, N)
     nmodel = model.normalised(image_size, nominal)
-    problem = _Eq22Problem(Hn, nmodel)
+    problem = Eq22Problem(Hn, nmodel)
     if problem.size > 6 * (n - 1):
         raise SelfCalibrationError(f"{problem.size} unknowns but only {6 * (n - 1)} equations (eq. 21)")
     K0 = _initial_intrinsics(H, image_size, model) if K_init is None else np.asarray(K_init, dtype=float)
@@ -250,7 +250,7 @@ def _check_solution(
     return True, ""
 
 
-def _uncertainty(J: Array, residuals: Array, problem: _Eq22Problem, nominal: float) -> tuple[Array, Array]:
+def _uncertainty(J: Array, residuals: Array, problem: Eq22Problem, nominal: float) -> tuple[Array, Array]:
     """1-sigma of f and pp per frame, pixels: (J^T J)^-1 scaled by the residual variance."""
     m, p = J.shape
     dof = max(m - p, 1)
