@@ -2,7 +2,7 @@
 
 One definition per setting gives the default (the dataclass), the node parameter with its description
 and its check (nodes/params.py), and the shipped parameter file's reference (checked by a test). Pure,
-so that core configs (online/config.py, frontend/tracker.py) use it without rclpy.
+so that core configs (online/config.py, frontend/tracker_config.py) use it without rclpy.
 """
 
 from __future__ import annotations
