@@ -20,7 +20,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -58,7 +57,7 @@ class Keyframe:
     keyframe_id: Hashable
     H: Array
     stamp: float | None = None
-    matches: Any = None  # optional data for a bundle-adjustment solver (not serialised)
+    matches: object | None = None  # opaque data for a bundle-adjustment solver (not serialised)
     K: Array | None = None  # latest estimate
 
 
@@ -81,9 +80,9 @@ def lm_solver(
     return lm_selfcalibration(H, image_size, model, K_init, max_nfev=max_nfev)
 
 
-@dataclass
-class _Solve:
-    """Summary of the latest accepted solve."""
+@dataclass(frozen=True)
+class AcceptedSolve:
+    """Summary of the latest accepted solve (the reference K_0 and what it cost)."""
 
     K_ref: Array
     sigma_f_ref: float
@@ -125,7 +124,7 @@ class IncrementalCalibrator:
         self.keyframes: list[Keyframe] = []
         self.state = CalibrationStatus.INITIALISING
         self.motion: MotionReport | None = None
-        self.last_solve: _Solve | None = None
+        self.last_solve: AcceptedSolve | None = None
         self.message = ""
         self._stable_solves = 0
 
@@ -144,7 +143,7 @@ class IncrementalCalibrator:
         keyframe_id: Hashable,
         H_ref_to_keyframe: ArrayLike,
         stamp: float | None = None,
-        matches: Any = None,
+        matches: object | None = None,
     ) -> CalibrationStatus:
         """Store a keyframe; solve the first time the motion is well posed (initialisation, section 6).
 
@@ -274,7 +273,7 @@ class IncrementalCalibrator:
         calibrator._stable_solves = int(data.get("stable_solves", 0))
         solve = data.get("last_solve")
         if solve is not None:
-            calibrator.last_solve = _Solve(
+            calibrator.last_solve = AcceptedSolve(
                 np.array(solve["K_ref"], dtype=float),
                 solve["sigma_f_ref"],
                 solve["residual"],
@@ -299,7 +298,7 @@ class IncrementalCalibrator:
             self._stable_solves = 0
             return  # keep the previous calibration (if any)
         previous = None if self.last_solve is None else self.last_solve.K_ref[1, 1]
-        self.last_solve = _Solve(
+        self.last_solve = AcceptedSolve(
             K_ref=result.K[0].copy(),
             sigma_f_ref=float(result.sigma_f[0]),
             residual=result.residual,
