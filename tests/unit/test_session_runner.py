@@ -144,3 +144,24 @@ def test_the_session_phase_follows_its_events(converged) -> None:
     assert fresh.phase is Phase.REFERENCED
     feed(fresh, H, f, frames=range(9, 120))
     assert fresh.phase is Phase.CALIBRATED
+
+
+def test_inline_solves_finish_before_the_next_frame() -> None:
+    """inline_solves: no worker thread; the frame thread solves what the previous frames brought before
+    it takes the next one, so a lock-step replay is the same every run."""
+    _, H, f = sweep(120)
+    session = CalibratorSession(
+        SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
+    runner = SessionRunner(session, RunnerConfig(budget_s=5.0, period_s=0.01, save_period_s=1e9))
+    runner.start(inline=True)
+    for j in range(0, 120, 8):
+        runner.solve_inline()
+        assert runner.pending == 0
+        runner.process(
+            FrameInput(j / 30.0, H[j], TrackingState.NEW_KEYFRAME, WIDTH, HEIGHT, j, "ref", float(f[j]))
+        )
+        assert runner.pending > 0  # collected, not solved: nothing runs behind the frame's back
+    runner.solve_inline()
+    assert session.counters["solves"] >= 2 and session.state in CALIBRATED
+    runner.stop()

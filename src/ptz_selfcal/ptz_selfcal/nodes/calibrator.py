@@ -96,7 +96,7 @@ class CalibratorNode(Node):
         self.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self._on_homography, reliable_qos())
         self.create_subscription(KeyframeMatches, topics.KEYFRAMES, self._on_keyframe_matches, reliable_qos())
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
-        self._runner.start()
+        self._runner.start(inline=p["inline_solves"])
         self.get_logger().info(
             f"calibrating {topics.HOMOGRAPHY} -> {self._info_pub.topic_name}; state_dir "
             f"{p['state_dir'] or '(none: no persistence)'}; bundle adjustment "
@@ -119,6 +119,7 @@ class CalibratorNode(Node):
         self._last_frame_stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
         width, height = int(msg.image_width), int(msg.image_height)
         runner = self._runner
+        runner.solve_inline()  # inline_solves: what the previous frames brought is solved first
         try:
             h = np.asarray(msg.h, dtype=float)
             enc = msg.encoders

@@ -38,6 +38,11 @@ class CalibratorNodeConfig:
     diagnostics_period: float = setting(
         1.0, "seconds between DiagnosticArray messages", bounds=(0.05, 3600.0)
     )
+    inline_solves: bool = setting(
+        False,
+        "solve in the frame callback before the next frame instead of in the worker (each solve completes "
+        "before the next frame: a lock-step replay gives the same result every run; live, frames wait)",
+    )
 
 
 def params_from(config: type, *, prefix: str = "", exclude: Collection[str] = ()) -> list[Param]:

@@ -99,6 +99,7 @@ class SessionRunner:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._busy = False
+        self._inline = False
         self._last_save = time.monotonic()
         self._thread = threading.Thread(target=self._loop, name="calibrator_solve", daemon=True)
 
@@ -135,15 +136,26 @@ class SessionRunner:
             return fn(self.session)
 
     # ---- the worker ------------------------------------------------------------------------------
-    def start(self) -> None:
-        self._thread.start()
+    def start(self, inline: bool = False) -> None:
+        """The worker thread; `inline`: none, the frame thread calls `solve_inline` instead."""
+        self._inline = inline
+        if not inline:
+            self._thread.start()
 
-    def step(self) -> None:
+    def solve_inline(self) -> None:
+        """Inline solves: finish the collected work now, on the calling (frame) thread, unpaced (the
+        result must not depend on the wall clock). A first solve asks for a refinement: two steps."""
+        for _ in range(3):
+            if not (self._inline and self.pending):
+                return
+            self.step(paced=False)
+
+    def step(self, paced: bool = True) -> None:
         """One worker step: take the work, solve outside the lock, hand the result back."""
         self._busy = True
         try:
             with self.lock:
-                work = self.session.take_work()
+                work = self.session.take_work(paced)
                 before = self.session.state
             result = self._solve(work, self.config.budget_s)
             with self.lock:

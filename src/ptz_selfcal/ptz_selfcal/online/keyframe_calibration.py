@@ -121,7 +121,7 @@ class KeyframeCalibration:
         remaining = max_seconds - (time.perf_counter() - start)
         if added:
             self._needs_refinement = True
-        due = time.monotonic() >= self._next_solve
+        due = not work.paced or time.monotonic() >= self._next_solve
         if calibrator.calibrated and self._needs_refinement and remaining > 0.0 and not solved and due:
             solved = self._reoptimise(remaining)
         if added:  # bounded memory: forget keyframes the calibrator dropped
@@ -379,7 +379,10 @@ class KeyframeCalibration:
             warnings=warnings,
             solve_ms=solve_ms,  # type: ignore[arg-type]
             backlog=len(self._backlog),
-            needs_refinement=self._needs_refinement,
+            # a refinement can run only once there is a calibration to refine
+            needs_refinement=self._needs_refinement
+            and self.calibrator is not None
+            and self.calibrator.calibrated,
         )
 
     def _warn(self, text: str) -> None:

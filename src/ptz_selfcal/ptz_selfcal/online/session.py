@@ -334,15 +334,16 @@ class CalibratorSession:
         self.calibration.set_distortion(distortion)
 
     # ---- events between the halves ---------------------------------------------------------------
-    def take_work(self) -> WorkBatch:
-        """The keyframes and matches collected since the last batch, for the solving half."""
+    def take_work(self, paced: bool = True) -> WorkBatch:
+        """The keyframes and matches collected since the last batch, for the solving half (paced: its
+        re-optimisations keep to max_solve_duty of a core; False: they run whenever due)."""
         refused = self._links.refused
         matches = tuple(
             m
             for m in self._pending_matches
             if m.keyframe_id not in refused and m.other_keyframe_id not in refused
         )
-        work = WorkBatch(self._epoch, self.image_size, tuple(self._pending), matches)
+        work = WorkBatch(self._epoch, self.image_size, tuple(self._pending), matches, paced)
         self._pending, self._pending_matches = [], []
         return work
 

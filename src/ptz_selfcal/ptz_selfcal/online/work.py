@@ -42,6 +42,7 @@ class WorkBatch:
     image_size: tuple[int, int] | None
     keyframes: tuple[PendingKeyframe, ...] = ()
     matches: tuple[KeyframeMatchSet, ...] = ()
+    paced: bool = True  # re-optimisations keep to max_solve_duty; False: whenever due (replays)
 
 
 @dataclass(frozen=True)
