@@ -53,6 +53,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pair-partners", type=int, default=10, help="partners per frame (stride multiples)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--quiet", action="store_true", help="no node output (the table is still printed)")
+    parser.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="passed to run: each solve completes before the next frame",
+    )
     parser.add_argument("--run-arg", action="append", default=[], help=argparse.SUPPRESS)
 
 
@@ -364,7 +369,8 @@ def run(args: argparse.Namespace) -> int:
         output_bag = out_dir / "output_bag"
         if output_bag.exists():
             raise CliError(f"{output_bag}: already exists (remove it or choose another --out-dir)")
-        run_info = run_pipeline(in_bag, output_bag, args.params, args.quiet, list(args.run_arg))
+        run_args = [*args.run_arg, *(["--deterministic"] if args.deterministic else [])]
+        run_info = run_pipeline(in_bag, output_bag, args.params, args.quiet, run_args)
         data = BagData(image_stamps=read_image_stamps(in_bag))
         data = read_output_bag(output_bag, data)
     report, series = evaluate(data, args.pair_stride, args.pair_partners)

@@ -9,7 +9,9 @@ Encoder messages are sent up to `--encoder-lookahead` seconds (bag time) ahead o
 frame_ingest can interpolate without waiting. Every output topic (camera_info, frame calibration,
 homography, keyframes, diagnostics) is recorded to OUT_BAG (mcap) together with the input bag's
 non-image topics (encoders, ground truth) copied unchanged; output messages get the bag time of the
-input image with the same header stamp, so the output bag has one time base.
+input image with the same header stamp, so the output bag has one time base. With --deterministic the
+calibrator runs with inline_solves (each solve completes before the next frame): the same bag gives the
+same output every run.
 """
 
 from __future__ import annotations
@@ -77,6 +79,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--namespace", help="namespace of the nodes (default: a private one per run)")
     parser.add_argument("--record-frames", action="store_true", help="also record frame_in (working images)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many images (0: all)")
+    parser.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="calibrator inline_solves: each solve completes before the next frame (same result every run)",
+    )
     parser.add_argument(
         "--quiet", action="store_true", help="no node output, no progress lines (summary only)"
     )
@@ -191,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
             "encoder_wait": 1.0,
         }
         tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
+        # Lock-step results otherwise depend on when the worker's solves land relative to the frames.
+        calibrator_args = {"inline_solves": "true"} if args.deterministic else {}
         specs = [
             NodeSpec("frame_ingest", NODE_MODULES["frame_ingest"], diag_remap + _overrides(ingest_args)),
             NodeSpec(
@@ -198,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
                 NODE_MODULES["homography_tracker"],
                 diag_remap + _overrides(tracker_args),
             ),
-            NodeSpec("calibrator", args.calibrator_module, diag_remap),
+            NodeSpec("calibrator", args.calibrator_module, diag_remap + _overrides(calibrator_args)),
         ]
         supervisor = Supervisor(specs, params_file, namespace, echo=not args.quiet, output=sys.stderr)
         writer = BagWriter(out)
