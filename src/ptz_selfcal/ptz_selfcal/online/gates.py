@@ -73,6 +73,26 @@ class MotionGate:
         self._previous = None
 
 
+class ZoomGate:
+    """zoom_gate with the previous frame's zoom encoder and f (from its homography) remembered."""
+
+    def __init__(self, config: SessionConfig) -> None:
+        self.config = config
+        self._previous_zoom = math.nan
+        self._previous_f = math.nan  # NaN: the previous frame had no calibrated f
+
+    def judge(self, table: ZoomTable | None, zoom: float, f: float) -> ZoomVerdict:
+        previous_f, self._previous_f = self._previous_f, float(f)
+        return zoom_gate(table, zoom, self._previous_zoom, float(f), previous_f, self.config)
+
+    def no_focal(self) -> None:
+        """This frame has no calibrated f: the next one is not compared with it."""
+        self._previous_f = math.nan
+
+    def frame_done(self, zoom: float) -> None:
+        self._previous_zoom = float(zoom)
+
+
 def zoom_gate(
     table: ZoomTable | None,
     zoom: float,

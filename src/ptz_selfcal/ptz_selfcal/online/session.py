@@ -37,6 +37,7 @@ from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frame_intrinsics import (
     KeyframeLinks,
+    calibrated_output,
     frame_intrinsics,
     initialising_reason,
     last_good_output,
@@ -44,7 +45,7 @@ from ptz_selfcal.online.frame_intrinsics import (
     zoom_output,
 )
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
-from ptz_selfcal.online.gates import MotionGate, ZoomVerdict, usable_homography, zoom_gate
+from ptz_selfcal.online.gates import MotionGate, ZoomGate, ZoomVerdict, usable_homography
 from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_calibration import KeyframeCalibration, new_calibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
@@ -60,6 +61,13 @@ Array = NDArray[np.float64]
 
 _S = CalibrationStatus
 _TRANSFER_ERRORS = (SelfCalibrationError, ValueError, np.linalg.LinAlgError)
+
+
+_FRAME_COUNTERS = (
+    *("frames", "keyframe_matches", "invalid_homographies", "frames_without_homography"),
+    *("reference_changes", "state_saves", "zoom_gate_rejections", "fast_motion_keyframes"),
+    "unconfirmed_keyframes",
+)
 
 
 class Phase(enum.Enum):
@@ -80,20 +88,7 @@ class CalibratorSession:
         self.config = config or SessionConfig()
         self.state_dir = Path(state_dir) if state_dir else None
         self.calibration = KeyframeCalibration(self.config)  # the solving half (owned by its caller)
-        self._counters: dict[str, int] = dict.fromkeys(
-            (
-                "frames",
-                "keyframe_matches",
-                "invalid_homographies",
-                "frames_without_homography",
-                "reference_changes",
-                "state_saves",
-                "zoom_gate_rejections",
-                "fast_motion_keyframes",
-                "unconfirmed_keyframes",
-            ),
-            0,
-        )
+        self._counters: dict[str, int] = dict.fromkeys(_FRAME_COUNTERS, 0)
         self.status_counts: dict[str, int] = dict.fromkeys(CalibrationStatus, 0)
         self._result: WorkResult = self.calibration.result()
         self._warnings: deque[str] = deque(maxlen=100)
@@ -109,8 +104,7 @@ class CalibratorSession:
         self._links = KeyframeLinks()
         self._seen_keyframes: set[int] = set()
         self._motion = MotionGate(self.config.max_keyframe_motion)
-        self._previous_zoom = math.nan  # zoom encoder of the previous frame
-        self._previous_focal = math.nan  # f of the previous frame from its homography (calibrated)
+        self._zoom_gate = ZoomGate(self.config)
         self._zoom_rates = ZoomRate()
         self._zoom_rate = 0.0  # zoom encoder counts / s at the current frame (0 = unknown)
         self._plumb_bob = PlumbBob()
@@ -135,11 +129,11 @@ class CalibratorSession:
                 self._counters["invalid_homographies"] += 1
         if H is None:
             self._counters["frames_without_homography"] += 1
-            self._previous_focal = math.nan
+            self._zoom_gate.no_focal()
             out = self._without_homography(frame)
         else:
             out = self._with_homography(frame, H)
-        self._previous_zoom = float(frame.zoom)
+        self._zoom_gate.frame_done(frame.zoom)
         out.time_s = time.perf_counter() - start
         self._frame_times.append(out.time_s)
         self.status_counts[out.status] += 1
@@ -171,18 +165,10 @@ class CalibratorSession:
                 self._warn(f"frame intrinsics failed: {exc}")
         verdict = ZoomVerdict.PASS
         if calibrated is None:
-            self._previous_focal = math.nan
+            self._zoom_gate.no_focal()
         else:
             assert snap is not None
-            previous_f, self._previous_focal = self._previous_focal, float(calibrated[0][1, 1])
-            verdict = zoom_gate(
-                snap.zoom_table,
-                frame.zoom,
-                self._previous_zoom,
-                self._previous_focal,
-                previous_f,
-                self.config,
-            )
+            verdict = self._zoom_gate.judge(snap.zoom_table, frame.zoom, calibrated[0][1, 1])
         if frame.tracking_state == TrackingState.NEW_KEYFRAME and kid not in self._seen_keyframes:
             self._keyframe_added(frame, kid, H, fast, verdict)
         if verdict is ZoomVerdict.REFUSE:
@@ -190,7 +176,13 @@ class CalibratorSession:
             return self._without_homography(frame)
         if calibrated is not None:
             assert snap is not None
-            return self._calibrated_output(snap, frame, *calibrated)
+            K, R, sigma_f = calibrated
+            out = calibrated_output(
+                snap, frame, K, R, sigma_f, self._plumb_bob(K, snap.shared_lam, self.image_size)
+            )
+            if out.status != _S.DEGENERATE_MOTION:
+                self.last_good = out
+            return out
         status = (
             _S.DEGENERATE_MOTION
             if snap is not None and snap.state == _S.DEGENERATE_MOTION
@@ -222,33 +214,6 @@ class CalibratorSession:
             self._pending.append(
                 PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom), self._zoom_rate)
             )
-
-    def _calibrated_output(
-        self, snap: CalibrationSnapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float
-    ) -> FrameOutput:
-        status = (
-            snap.state
-            if snap.state in (_S.CALIBRATING, _S.CONVERGED, _S.DEGENERATE_MOTION)
-            else _S.CALIBRATING
-        )
-        K = np.asarray(K, dtype=float)
-        out = FrameOutput(
-            status=status,
-            K=K,
-            D=self._plumb_bob(K, snap.shared_lam, self.image_size),
-            R=np.asarray(R, dtype=float) if np.all(np.isfinite(R)) else None,
-            sigma_f=float(sigma_f),
-            sigma_cx=snap.sigma_pp[0],
-            sigma_cy=snap.sigma_pp[1],
-            residual=snap.residual,
-            keyframe_id=int(frame.keyframe_id),
-            keyframe_count=snap.keyframe_count,
-            source="calibration",
-            message=snap.message,
-        )
-        if status != _S.DEGENERATE_MOTION:
-            self.last_good = out
-        return out
 
     def _prior_output(self, frame: FrameInput, status: str, H: Array) -> FrameOutput:
         """Before calibration: the zoom model at this zoom, else the prior reference K through H."""
