@@ -544,7 +544,7 @@ def run_session(
     "As published" counts the frames the product published as CONVERGED (DESIGN.md 4: the statuses
     before it say the calibration is not yet to be taken). `stills`: the stills front end's
     configuration for the real sets (track_sequence)."""
-    from ptz_selfcal.lens.correction import SessionLensHook
+    from ptz_selfcal.lens.hook import SessionLensHook
     from ptz_selfcal.online.session import CalibratorSession, FrameInput
 
     fixed = focal_model == "constant"
@@ -553,7 +553,7 @@ def run_session(
     session = CalibratorSession(config)
     lens = SessionLensHook(config.nominal_focal) if distortion and not fixed else None
     if lens is not None:
-        session.distortion_model = lens.distortion
+        session.set_distortion(lens.distortion)
     published: dict[int, tuple[Array, Array, str]] = {}
     statuses: dict[str, int] = {}
     w, h = seq.size
@@ -609,7 +609,7 @@ def run_session(
             f"; CPU/frame: front end {1000.0 * (tracking.cpu_seconds - calib_cpu) / n:.0f} ms ({stages}), "
             f"calibration {1000.0 * calib_cpu / n:.0f} ms"
         )
-    calibrator = session.calibrator
+    calibrator = session.calibration.calibrator
     if calibrator is not None and session.reference_id not in (None, ""):
         calibrator.reference_id = int(session.reference_id)  # the map the session calibrated last
     final = final_state_row(seq, tracking, calibrator, ms, lens)
@@ -619,8 +619,8 @@ def run_session(
         final.note += (
             f"; state {calibrator.state.value}, 1-sigma f {100 * solve.sigma_f_ref / solve.K_ref[1, 1]:.2g}%"
         )
-    if fixed and distortion and session.solver.shared_lam is not None:
-        final.note += f"; lam {session.solver.shared_lam:.4f}"
+    if fixed and distortion and session.calibration.solver.shared_lam is not None:
+        final.note += f"; lam {session.calibration.solver.shared_lam:.4f}"
     elif distortion:
         final.note += "; estimate_distortion: true"
     return [*rows, final], tracking
