@@ -3,11 +3,17 @@
 Nothing here is autouse: a test asks for what it needs. Node tests set a module-level ROS_DOMAIN_ID
 (each test file its own) and use `ros_env`, which exports it (and LOCALHOST discovery) for the test's
 own rclpy and returns the environment for the node processes it starts.
+
+Imagery: `SOURCE_PANORAMA` is the repository's own panorama (bags/source, CC BY-SA); a test that truly
+needs the shared data (../shared/data beside the repository) asks for the `shared_data` fixture, and
+the run lists those tests. The run fails when more than MAX_SKIPPED tests are skipped, and
+PTZ_TEST_SEED=<int> runs the modules, and the tests inside each, in a seeded random order.
 """
 
 from __future__ import annotations
 
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -21,6 +27,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PANORAMAS = Path(os.environ.get("PTZ_PANORAMAS", "/work/shared/data/panoramas"))
 PYTHON = sys.executable
+SOURCE_PANORAMA = REPO / "bags/source/examplepano.jpg"
+SHARED_DATA = REPO.parent / "shared" / "data"  # CI lays shared/ beside its clone, as here
+MAX_SKIPPED = 5
+_skipped: list[str] = []
+_shared_data_users: list[str] = []
 
 STUB_CALIBRATOR = '''"""Stand-in for nodes/calibrator.py: one CameraInfo + FrameCalibration per homography."""
 import sys
@@ -189,3 +200,58 @@ def short_synth_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def scratch_dir() -> Iterator[Path]:
     with tempfile.TemporaryDirectory(prefix="ptz_selfcal_test_") as tmp:
         yield Path(tmp)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The shared data directory beside the repository (skipped, and counted, when it is absent)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data {SHARED_DATA} absent")
+    return SHARED_DATA
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """PTZ_TEST_SEED: shuffle the modules, and the tests within each (module fixtures stay built once)."""
+    seed = os.environ.get("PTZ_TEST_SEED")
+    if not seed:
+        return
+    rng = random.Random(int(seed))
+    modules: dict[str, list[pytest.Item]] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::")[0], []).append(item)
+    order = list(modules.values())
+    rng.shuffle(order)
+    for group in order:
+        rng.shuffle(group)
+    items[:] = [item for group in order for item in group]
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    seed = os.environ.get("PTZ_TEST_SEED")
+    return f"ptz_selfcal: test order {'shuffled, PTZ_TEST_SEED=' + seed if seed else 'as collected'}"
+
+
+def pytest_runtest_call(item: pytest.Item) -> None:
+    if "shared_data" in getattr(item, "fixturenames", ()):
+        _shared_data_users.append(item.nodeid)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.skipped and not hasattr(report, "wasxfail"):
+        _skipped.append(report.nodeid)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if len(_skipped) > MAX_SKIPPED and exitstatus == pytest.ExitCode.OK:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
+    """Which tests used the shared data, and how many were skipped (more than MAX_SKIPPED fails)."""
+    write = terminalreporter.write_line
+    write(f"tests that used the shared data ({SHARED_DATA}): {len(_shared_data_users)}")
+    for nodeid in _shared_data_users:
+        write(f"  {nodeid}")
+    write(f"skipped tests: {len(_skipped)} (at most {MAX_SKIPPED})")
+    if len(_skipped) > MAX_SKIPPED:
+        write(f"FAILED: more than {MAX_SKIPPED} tests skipped", red=True, bold=True)

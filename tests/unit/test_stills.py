@@ -4,11 +4,11 @@ a hand-held 360 degree pan in order, as the real rotation sets are."""
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import SOURCE_PANORAMA
 
 from ptz_selfcal.camera.geometry import (
     intrinsic_matrix,
@@ -30,7 +30,6 @@ from ptz_selfcal.frontend.stills import (
 )
 from ptz_selfcal.status import TrackingState
 
-PANORAMA = Path("/work/shared/data/panoramas/examplepano.jpg")
 SIZE = (320, 240)
 F = 0.5 * SIZE[0] / np.tan(np.radians(30.0))  # 60 degrees of horizontal field
 K = intrinsic_matrix(F, 0.5 * (SIZE[0] - 1) + 3.0, 0.5 * (SIZE[1] - 1) - 2.0)
@@ -49,11 +48,9 @@ def hand_held(n: int = N_STILLS, seed: int = 3) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def stills() -> tuple[list[np.ndarray], np.ndarray]:
-    if not PANORAMA.exists():
-        pytest.skip("shared panorama data absent")
     from ptz_selfcal.sim.render import build_panorama, render_view
 
-    pano = build_panorama(cv2.imread(str(PANORAMA), cv2.IMREAD_GRAYSCALE))
+    pano = build_panorama(cv2.imread(str(SOURCE_PANORAMA), cv2.IMREAD_GRAYSCALE))
     R = hand_held()
     return [render_view(pano, K, Ri, SIZE) for Ri in R], R
 
