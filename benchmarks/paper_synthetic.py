@@ -343,6 +343,8 @@ DEPENDENCIES = [
         "camera/geometry",
         "frontend/homography",
         "selfcal/degeneracy",
+        "selfcal/result",
+        "selfcal/transfer",
         "sim/metrics",
     )
 ] + ["benchmarks/paper_synthetic.py"]

@@ -180,7 +180,7 @@ class KeyframeCalibration:
         self._solve_times.append(seconds)
         if first and calibrator.calibrated:
             self._needs_refinement = True  # a second, warm-started pass (with BA) right away
-        if calibrator.state.value == CalibrationStatus.CONVERGED:
+        if calibrator.state is CalibrationStatus.CONVERGED:
             self._learn_zoom_model(calibrator)
 
     # ----------------------------------------------------------------------------------------------
@@ -222,7 +222,7 @@ class KeyframeCalibration:
     def _status(self, calibrator: IncrementalCalibrator, message: str) -> tuple[CalibrationStatus, str]:
         """The calibrator's state, except that a fixed lens is CONVERGED only while its focal length is
         pinned: a small 1-sigma, and no move when the lens model changes (section 6.2 meets section 7)."""
-        state = CalibrationStatus(calibrator.state.value)
+        state = calibrator.state
         solve = calibrator.last_solve
         if not (self.config.fixed_lens and state == CalibrationStatus.CONVERGED and solve is not None):
             return state, message
