@@ -10,8 +10,9 @@ frame_ingest can interpolate without waiting. Every output topic (camera_info, f
 homography, keyframes, diagnostics) is recorded to OUT_BAG (mcap) together with the input bag's
 non-image topics (encoders, ground truth) copied unchanged; output messages get the bag time of the
 input image with the same header stamp, so the output bag has one time base. With --deterministic the
-calibrator runs with inline_solves (each solve completes before the next frame): the same bag gives the
-same output every run.
+calibrator runs with inline_solves (each solve completes before the next frame) and frame_ingest only
+interpolates encoders between bracketing samples (encoder_max_hold 0, no extrapolation whose use depends
+on delivery order): the same bag gives the same output every run.
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--deterministic",
         action="store_true",
-        help="calibrator inline_solves: each solve completes before the next frame (same result every run)",
+        help="each solve completes before the next frame, encoders only interpolated (same output every run)",
     )
     parser.add_argument(
         "--quiet", action="store_true", help="no node output, no progress lines (summary only)"
@@ -197,6 +198,10 @@ def run(args: argparse.Namespace) -> int:
             "wait_for_subscribers": 2 if args.record_frames else 1,
             "encoder_wait": 1.0,
         }
+        if args.deterministic:
+            # A stamp just past the newest sample is otherwise extrapolated or interpolated depending on
+            # whether the next sample (sent before the image, on another topic) was delivered first.
+            ingest_args["encoder_max_hold"] = 0.0
         tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
         # Lock-step results otherwise depend on when the worker's solves land relative to the frames.
         calibrator_args = {"inline_solves": "true"} if args.deterministic else {}
