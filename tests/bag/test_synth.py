@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from ptz_selfcal import topics
 from ptz_selfcal.camera.distortion import division_corner_shift, division_distort, division_undistort
@@ -20,6 +21,7 @@ from ptz_selfcal.tools.bagio import BagReader, deserialize
 PANORAMA = Path(__file__).resolve().parents[2] / "bags" / "source" / "examplepano.jpg"
 W, H, FRAMES, FPS = 320, 180, 20, 30.0
 START_NS = 1_767_225_600 * 10**9
+DEFAULT_HFOV = 54.0  # synth's documented default, deliberately not the calibrator's prior
 # A short, gentle sequence (a few degrees and a few % zoom per frame) so that consecutive frames overlap.
 MOTION = ["--pan-amplitude", "10", "--tilt-amplitude", "3", "--zoom-max", "1.5"]
 CLI = "import sys; from ptz_selfcal.tools.cli import main; sys.exit(main())"  # as the entry point does
@@ -59,7 +61,7 @@ def stamp_ns(msg: object) -> int:
 def profile(corner_shift: float = 0.0) -> CameraProfile:
     """The profile the defaults + MOTION describe, built independently of tools/synth.py."""
     return CameraProfile(
-        width=W, height=H, period=(FRAMES - 1) / FPS, f_wide=focal_from_hfov(W, 60.0), zoom_max=1.5,
+        width=W, height=H, period=(FRAMES - 1) / FPS, f_wide=focal_from_hfov(W, DEFAULT_HFOV), zoom_max=1.5,
         pan_amplitude=np.radians(10.0), tilt_amplitude=np.radians(3.0), corner_shift=corner_shift,
     )  # fmt: skip
 
@@ -100,6 +102,18 @@ def test_topics_counts_and_stamps(bags: dict[str, Path]) -> None:
     assert all(list(m.name) == ["pan", "tilt", "zoom"] for _, m in msgs["/ptz/joint_states"])
     times = [t for topic in msgs.values() for t, _ in topic]
     assert len(times) == FRAMES * 3 + len(enc)
+
+
+def test_defaults_are_not_the_calibrators_prior(bags: dict[str, Path]) -> None:
+    """A first bag made with the defaults must be solved for: neither its focal length nor its principal
+    point is what the shipped parameter file assumes before the first calibration."""
+    config = Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"
+    prior = yaml.safe_load(config.read_text())["calibrator"]["ros__parameters"]
+    assert prior["nominal_focal_px"] == 0.0  # the prior comes from nominal_hfov_deg
+    info = read_bag(bags["jpeg"])["/ptz/ground_truth/camera_info"][0][1]
+    f_prior = focal_from_hfov(W, prior["nominal_hfov_deg"])
+    assert abs(info.k[0] / f_prior - 1.0) > 0.05, (info.k[0], f_prior)
+    assert np.hypot(info.k[2] - (W - 1) / 2, info.k[5] - (H - 1) / 2) > 10.0
 
 
 def test_ground_truth_matches_profile(bags: dict[str, Path]) -> None:
@@ -186,7 +200,7 @@ def test_distortion_and_raw_format(bags: dict[str, Path]) -> None:
     assert len(images) == FRAMES
     m = images[0][1]
     assert (m.encoding, m.width, m.height, m.step, len(m.data)) == ("mono8", W, H, W, W * H)
-    f_wide = focal_from_hfov(W, 60.0)
+    f_wide = focal_from_hfov(W, DEFAULT_HFOV)
     for _, info in msgs["/ptz/ground_truth/camera_info"]:
         assert info.distortion_model == "division" and len(info.d) == 1
         f = info.k[0]

@@ -52,6 +52,7 @@ from ptz_selfcal.sim.render import (
 from ptz_selfcal.tools.cli import CliError
 
 FORMATS = ("jpeg", "png", "mono8", "bgr8")
+DEFAULT_HFOV = 54.0
 DEFAULT_START = 1_767_225_600  # 2026-01-01T00:00:00Z: a fixed epoch keeps the bytes reproducible
 IMAGE_TYPE = topics.TYPES[topics.IMAGE_RAW]
 COMPRESSED_TYPE = topics.TYPES[topics.IMAGE_COMPRESSED]
@@ -70,7 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--start-time", type=float, default=DEFAULT_START, help="first image stamp, seconds")
     g = parser.add_argument_group("camera motion and lens")
     g.add_argument("--f-wide", type=float, help="focal length at the wide end, pixels (default: from --hfov)")
-    g.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view at the wide end, deg")
+    # Not the calibrator's shipped prior (60 deg, centred principal point): a first bag must be solved for.
+    g.add_argument(
+        "--hfov", type=float, default=DEFAULT_HFOV,
+        help=f"horizontal field of view at the wide end, deg (default {DEFAULT_HFOV:g})",
+    )  # fmt: skip
     g.add_argument("--zoom-max", type=float, default=3.0, help="largest zoom ratio (1 -> max -> 1)")
     g.add_argument("--pan-amplitude", type=float, default=40.0, help="pan amplitude, degrees (default 40)")
     g.add_argument("--tilt-amplitude", type=float, default=8.0, help="tilt amplitude, degrees (default 8)")
