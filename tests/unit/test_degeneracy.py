@@ -149,12 +149,16 @@ def test_varying_pp_breakdown_in_configuration_b_is_flagged() -> None:
 
 
 def test_configuration_b_constant_pp_at_moderate_noise_is_confident() -> None:
-    for seed in range(2):
+    square_errors, sigmas = [], []
+    for seed in range(10):
         H, K = _noisy_paper_b(0.5, seed)
         constant = lm_selfcalibration(H, SIZE, SQUARE_CONSTANT_PP)
         assert constant.ok, constant.message
         assert constant.motion.status == STATUS_OK
-        rms = np.sqrt(np.mean((constant.K[:, 1, 1] / K[:, 1, 1] - 1.0) ** 2))
-        assert rms < 0.03
-        # the Jacobian's relative sigma_f is of the size of the actual error (within a factor 5)
-        assert 0.2 * rms < constant.motion.relative_sigma_f < 5.0 * rms + 0.002
+        square_errors.append(np.mean((constant.K[:, 1, 1] / K[:, 1, 1] - 1.0) ** 2))
+        sigmas.append(constant.motion.relative_sigma_f)
+        assert np.sqrt(square_errors[-1]) < 0.03
+    # the Jacobian's relative sigma_f is the size of the actual error: a factor 2.7 is 3x the worst log
+    # deviation of this ratio from 1 over other sets of ten seeds
+    ratio = float(np.mean(sigmas)) / float(np.sqrt(np.mean(square_errors)))
+    assert 1.0 / 2.7 < ratio < 2.7, ratio

@@ -156,11 +156,13 @@ def test_noisy_constant_pp_within_statistical_bounds() -> None:
         errors.append(err / K[:, 1, 1])
         z.append(err / result.sigma_f)
         assert np.all(result.sigma_f > 0.0) and np.all(result.sigma_pp > 0.0)
-        assert np.linalg.norm(result.principal_point - np.array(CENTRE), axis=1).max() < 10.0
+        assert np.linalg.norm(result.principal_point - np.array(CENTRE), axis=1).max() < 8.0
     rms = float(np.sqrt(np.mean(np.square(errors))))
     assert 1e-4 < rms < 0.006
-    # sigma_f from (J^T J)^-1 underestimates (frame-0 noise is shared by all H_j) but not wildly
-    assert float(np.sqrt(np.mean(np.square(z)))) < 5.0
+    # sigma_f from (J^T J)^-1 underestimates (frame-0 noise is shared by all H_j) but not wildly, and does
+    # not overestimate: the rms z-score over five seeds stays within 0.78..2.04 on other seed sets
+    z_rms = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.25 < z_rms < 5.0, z_rms
 
 
 def test_noisy_varying_pp_less_accurate_than_constant_pp() -> None:
