@@ -537,7 +537,7 @@ def run_session(
 
     focal_model "varying" (the node's default, a zooming camera) or "constant" (focal_model:=constant,
     a fixed lens). `distortion` is estimate_distortion:=true: for a varying focal length
-    lens/correction.SessionLensHook in front of the session exactly as nodes/calibrator.py wires it
+    lens/hook.SessionLensHook in front of the session exactly as nodes/calibrator.py wires it
     (homographies corrected per frame, keyframe matches through the hook, its `work` after every session
     step, D from its plumb_bob fit); for a fixed lens one coefficient in the session's adjustment;
     None: as the product is configured for the input (estimate_distortion for a distorted lens).

@@ -236,7 +236,10 @@ class _StubSession:
         self.matches.append((i, j, a, b, H))
         return True
 
-    def keyframe_homographies_changed(self) -> None:
+    def replace_keyframe_homographies(self, homographies) -> None:
+        for kf in self.calibrator.keyframes:
+            if kf.keyframe_id in homographies:
+                kf.H = homographies[kf.keyframe_id]
         self.homography_updates += 1
 
 

@@ -10,7 +10,7 @@ assumed centre); tied together and fitted to the raw points, the distortion patt
 centre (tests/unit/test_bundle.py, benchmarks/distortion.py). lam_i is either free per frame
 (distortion="frame"), one coefficient shared by every frame (distortion="shared": a fixed lens, whose
 distortion does not change between images) or on a curve of the focal length (distortion="curve",
-section 7.2's second option, eq. 35 with lens/estimation.DistortionVsFocal's better-behaved
+section 7.2's second option, eq. 35 with lens/curve.DistortionVsFocal's better-behaved
 form): the corner shift s = c0 + c1 u + c2 u^2, u = f_ref / f_i, lam_i = -s / ((1 + s) (D / f_i)^2),
 D the half-diagonal. Per-frame coefficients at long focal lengths trade off against the focal length
 (both act at second order over a narrow field of view); the curve keeps three unknowns for the whole

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 from collections import deque
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from typing import Protocol
 
 import numpy as np
@@ -20,7 +20,7 @@ Array = NDArray[np.float64]
 
 
 class SessionKeyframe(Protocol):
-    """A calibrator keyframe: its homography from the reference (replaced by the corrected chain)."""
+    """A calibrator keyframe: its homography from the reference and its latest K."""
 
     keyframe_id: Hashable
     H: Array
@@ -69,7 +69,7 @@ class LensSession(Protocol):
         H: Array | None = None,
     ) -> bool: ...
 
-    def keyframe_homographies_changed(self) -> None: ...
+    def replace_keyframe_homographies(self, homographies: Mapping[int, Array]) -> None: ...
 
 
 class SessionLensHook:
@@ -236,13 +236,9 @@ class SessionLensHook:
         snap = lens.snapshot
         assert snap is not None
         # the session's keyframes were stored with the correction known when they arrived: give them
-        # their chains recomputed with the new estimate (the worker owns the calibrator here)
+        # their chains recomputed with the new estimate
         if calibrator is not None:
-            for kf in list(calibrator.keyframes):
-                H = snap.H.get(int(kf.keyframe_id))
-                if H is not None:
-                    kf.H = H
-            session.keyframe_homographies_changed()
+            session.replace_keyframe_homographies(snap.H)
         if self.joint_bundle:  # the adjustment fits the distortion itself: the raw points went already
             return True
         for i, j, a, b in self._raw_matches:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -65,8 +65,8 @@ class SessionView:
         with self._lock:
             return self._session.add_keyframe_matches(keyframe_id, other_keyframe_id, points, other, H)
 
-    def keyframe_homographies_changed(self) -> None:
-        result = self._session.calibration.result()
+    def replace_keyframe_homographies(self, homographies: Mapping[int, Array]) -> None:
+        result = self._session.calibration.replace_keyframe_homographies(homographies)
         with self._lock:
             self._session.accept(result)
 

@@ -139,10 +139,10 @@ class SessionConfig:
         choices=("varying", "constant"),
     )
     # In the session this is the fixed lens's one coefficient (bundle/adjust distortion="shared"); the
-    # node gives a zooming lens's estimate_distortion to lens/correction.SessionLensHook instead.
+    # node gives a zooming lens's estimate_distortion to lens/hook.SessionLensHook instead.
     estimate_distortion: bool = setting(
         False,
-        "radial distortion (issue 6). focal_model varying: through lens/correction.SessionLensHook, "
+        "radial distortion (issue 6). focal_model varying: through lens/hook.SessionLensHook, "
         "division model about the principal point estimated in the keyframe bundle adjustment on the raw "
         "keyframe matches (lam(f) curve), homographies corrected with it before self-calibration. "
         "focal_model constant: ONE division coefficient for the lens, estimated with K in that "

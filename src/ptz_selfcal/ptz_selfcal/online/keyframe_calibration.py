@@ -15,6 +15,7 @@ import copy
 import math
 import time
 from collections import OrderedDict, deque
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -350,6 +351,17 @@ class KeyframeCalibration:
         return messages
 
     # ----------------------------------------------------------------------------------------------
+    def replace_keyframe_homographies(self, homographies: Mapping[int, Array]) -> WorkResult:
+        """The keyframes' homographies from the reference re-corrected (the lens correction's new
+        estimate); the result publishes them, so that a frame's homography and its keyframe's come
+        from the same correction."""
+        if self.calibrator is not None:
+            for kf in self.calibrator.keyframes:
+                H = homographies.get(int(kf.keyframe_id))
+                if H is not None:
+                    kf.H = H
+        return self.result()
+
     def result(self) -> WorkResult:
         """The current snapshot as a result, for a change made outside `apply` (a restore, or the lens
         correction replacing the keyframes' homographies)."""

@@ -27,6 +27,7 @@ import math
 import os
 import time
 from collections import deque
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -334,10 +335,9 @@ class CalibratorSession:
         self.accept(result)
         return result.solved
 
-    def keyframe_homographies_changed(self) -> None:
-        """The keyframes' homographies were replaced (the lens correction re-corrected them): publish
-        them, so that a frame's homography and its keyframe's come from the same correction."""
-        self.accept(self.calibration.result())
+    def replace_keyframe_homographies(self, homographies: Mapping[int, Array]) -> None:
+        """The lens correction re-corrected the keyframes' homographies (KeyframeCalibration's)."""
+        self.accept(self.calibration.replace_keyframe_homographies(homographies))
 
     def _new_reference(self, why: str) -> None:
         """The reference changed: a new epoch; the calibration restarts, the zoom model is kept."""
