@@ -2,27 +2,29 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from ptz_selfcal.nodes.conversions import MSG_TO_STATUS
+from ptz_selfcal.status import CalibrationStatus
 from ptz_selfcal.tools import evaluate
 
-PTZ = [sys.executable, "-m", "ptz_selfcal.tools.cli"]
-PANORAMA = Path("/work/shared/data/panoramas/building.jpg")
-DOMAIN = 160
+CONVERGED = CalibrationStatus.CONVERGED
 
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("ptz_selfcal.tools.run") is None
-    or importlib.util.find_spec("ptz_selfcal.tools.synth") is None
-    or not PANORAMA.exists(),
-    reason="needs ptz-selfcal run and synth and the shared panorama",
-)
+PTZ = [sys.executable, "-m", "ptz_selfcal.tools.cli"]
+PANORAMA = Path(__file__).resolve().parents[2] / "bags" / "source" / "examplepano.jpg"
+DOMAIN = 160
+# A lens the shipped prior (60 deg, centred principal point) does not know: at 52 deg the prior's f is
+# 15.5 % short, the principal point is 27.8 px off centre, and the 12x lens sits behind synth's nonlinear
+# zoom encoder, 60 ms late with 4 counts of noise. Frames before the first solve carry the prior.
+LENS = ["--hfov", "52", "--pp-offset", "-24", "14", "--lens-ratio", "12", "--zoom-noise", "4"]
+LENS += ["--encoder-lag", "0.06"]
 
 
 def _env() -> dict[str, str]:
@@ -35,7 +37,7 @@ def _env() -> dict[str, str]:
 def short_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     bag = tmp_path_factory.mktemp("eval") / "short"
     subprocess.run(
-        [*PTZ, "synth", str(PANORAMA), str(bag), "--frames", "48", "--quiet", "--seed", "3"],
+        [*PTZ, "synth", str(PANORAMA), str(bag), "--frames", "48", "--quiet", "--seed", "3", *LENS],
         check=True,
         env=_env(),
         timeout=120,
@@ -46,7 +48,7 @@ def short_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_eval_writes_report_plots_and_table(short_bag: Path, tmp_path: Path) -> None:
     out = tmp_path / "report"
     proc = subprocess.run(
-        [*PTZ, "eval", str(short_bag), "--out-dir", str(out), "--quiet"],
+        [*PTZ, "eval", str(short_bag), "--out-dir", str(out), "--quiet", "--deterministic"],
         env=_env(),
         capture_output=True,
         text=True,
@@ -58,10 +60,20 @@ def test_eval_writes_report_plots_and_table(short_bag: Path, tmp_path: Path) -> 
     assert report["frames"]["input"] == 48
     assert report["frames"]["duplicate_camera_info"] == 0
     assert report["truth"] == {"intrinsics": "ground truth", "rotations": "ground truth"}
+    # Bounds at about 3x the worst of synth seeds 3..7 (the test's bag is seed 3). The rotation median
+    # also counts the frames still on the prior (f 15 % off) after the 10 % warm-up, hence its size.
     late = report["metrics"]["focal_error"]["after_warmup"]
-    assert late["count"] > 0 and late["median"] < 0.01, late  # loose for a 48-frame CI bag
-    assert report["metrics"]["principal_point_error_px"]["after_warmup"]["median"] < 10.0
+    assert late["count"] > 0 and late["median"] < 0.006, late
+    assert report["metrics"]["principal_point_error_px"]["after_warmup"]["median"] < 1.5
     assert report["metrics"]["rotation_error_deg"]["after_warmup"]["median"] < 0.2
+    # a CONVERGED frame is within 1 % of the true focal length and 1.7 px of the principal point
+    data = evaluate.read_output_bag(out / "output_bag")
+    converged = [s for s, fc in data.frame_calibration.items() if MSG_TO_STATUS[fc.status] == CONVERGED]
+    assert len(converged) >= 30, report["status_counts"]
+    for stamp in converged:
+        K, K_true = (np.reshape(m.k, (3, 3)) for m in (data.camera_info[stamp], data.gt_camera_info[stamp]))
+        assert abs(K[0, 0] / K_true[0, 0] - 1.0) < 0.01, (stamp, K[0, 0], K_true[0, 0])
+        assert np.hypot(*(K[:2, 2] - K_true[:2, 2])) < 1.7, (stamp, K[:2, 2], K_true[:2, 2])
     assert report["performance"]["run_throughput_fps"] > 0
     for name in ("focal.png", "principal_point.png", "pan_tilt.png"):
         assert (out / name).stat().st_size > 1000
@@ -83,7 +95,6 @@ def test_eval_writes_report_plots_and_table(short_bag: Path, tmp_path: Path) -> 
     assert second["metrics"]["focal_error"] == report["metrics"]["focal_error"]
 
     # a bag without ground truth (a real camera): rotations against the encoders passed through
-    data = evaluate.read_output_bag(out / "output_bag")
     data.gt_camera_info.clear()
     data.gt_joint_states.clear()
     data.image_stamps = evaluate.read_image_stamps(short_bag)
