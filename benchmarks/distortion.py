@@ -253,7 +253,7 @@ def joint_bundle(run: dict, lines: list[str]) -> None:
     ):
         start = time.perf_counter()
         first = bundle_adjust(obs, K0, R, (W, H), model, pp_prior=prior, distortion=mode, analyse=False)
-        noise = math.sqrt(first.info["residual_variance"])
+        noise = math.sqrt(first.bundle.residual_variance)
         res = bundle_adjust(
             obs, K0, R, (W, H), model, pp_prior=prior, noise_sigma=noise, distortion=mode, analyse=False
         )
@@ -262,11 +262,11 @@ def joint_bundle(run: dict, lines: list[str]) -> None:
         pp = float(np.linalg.norm(res.K[0, :2, 2] - K[0, :2, 2]))
         d_err = [
             max_distortion_difference(("division", [le], Kt), ("division", [lt], Kt), W, H)
-            for le, lt, Kt in zip(res.info["lam"], lam, K)
+            for le, lt, Kt in zip(res.bundle.lam, lam, K)
         ]
         lines.append(
             f"     {label:<44} {pp:>5.2f}px {res.sigma_pp[0].max():>4.2f}px {np.median(fe):>8.3f}% "
-            f"{fe.max():>6.3f}% {100 * np.median(np.abs(res.info['lam'] / lam - 1)):>7.2f}% "
+            f"{fe.max():>6.3f}% {100 * np.median(np.abs(res.bundle.lam / lam - 1)):>7.2f}% "
             f"{np.median(d_err):>7.2f}px  (rms {res.residual:.3f} px, {seconds:.1f} s)"
         )
 

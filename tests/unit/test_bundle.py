@@ -63,7 +63,7 @@ def test_exact_data_converges_to_the_truth_from_a_perturbed_start(config, model)
     np.testing.assert_array_equal(result.R[0], np.eye(3))
     assert result.residual < 1e-6
     # The start was really off: 4% focal error, a few pixels of principal point.
-    assert result.info["initial_cost"] > 1e3
+    assert result.bundle.initial_cost > 1e3
 
 
 def test_rotated_gauge_and_given_rays_are_accepted() -> None:
@@ -77,9 +77,9 @@ def test_rotated_gauge_and_given_rays_are_accepted() -> None:
     assert max(rotation_angle(Re @ Rt.T) for Re, Rt in zip(result.R, seq.R_relative)) < 1e-8
     # Recovered rays are the true directions expressed in camera 0's frame.
     expected = rays @ seq.R[0].T
-    seen = np.isfinite(result.info["rays"][:, 0])
+    seen = np.isfinite(result.bundle.rays[:, 0])
     assert seen.sum() > 850  # rays seen in at least two frames
-    assert np.abs(result.info["rays"][seen] - expected[seen]).max() < 1e-7
+    assert np.abs(result.bundle.rays[seen] - expected[seen]).max() < 1e-7
 
 
 def _assert_jacobians_match_finite_differences(state, obs, layout, params) -> None:
@@ -140,10 +140,10 @@ def test_mle_beats_its_lm_start_within_statistical_bounds() -> None:
         lin = linear_selfcalibration(seq.H, seq.image_size)
         lm = lm_selfcalibration(seq.H, seq.image_size, SQUARE_CONSTANT_PP, lin.K)
         mle = bundle_adjust(seq.observations(), lm.K, lm.R, seq.image_size, SQUARE_CONSTANT_PP)
-        assert mle.cost < mle.info["initial_cost"]
+        assert mle.cost < mle.bundle.initial_cost
         # rms reprojection error of a converged MLE: sigma * sqrt(2 * dof / (2N)).
-        n_obs = mle.info["n_observations"]
-        dof = 2 * n_obs - (3 * 29 + 32) - 2 * mle.info["n_rays"]
+        n_obs = mle.bundle.n_observations
+        dof = 2 * n_obs - (3 * 29 + 32) - 2 * mle.bundle.n_rays
         np.testing.assert_allclose(mle.residual, sigma * np.sqrt(2.0 * dof / (2 * n_obs)), rtol=0.05)
         lm_errors.append(_focal_rms(lm, seq))
         mle_errors.append(_focal_rms(mle, seq))
@@ -198,7 +198,7 @@ def test_map_prior_tracks_a_drifting_principal_point() -> None:
 def _eq27_cost(result, obs, mean, sigma, noise) -> float:
     """Eq. 27 evaluated independently from the result: reprojection of its rays plus the pp prior."""
     frames, rays, xy = obs
-    X = result.info["rays"][rays]
+    X = result.bundle.rays[rays]
     proj = np.einsum("nij,njk,nk->ni", result.K[frames], result.R[frames], X)
     reprojection = np.sum((proj[:, :2] / proj[:, 2:] - xy) ** 2)
     prior = noise**2 * np.sum(((result.principal_point - mean) / sigma) ** 2)
@@ -213,7 +213,7 @@ def test_map_minimises_eq27_and_the_prior_weight_is_right() -> None:
     result = bundle_adjust(
         (frames, rays, xy), K, R, seq.image_size, SQUARE_VARYING_PP, pp_prior=(mean, sigma), noise_sigma=noise
     )
-    seen = np.isin(rays, np.flatnonzero(np.isfinite(result.info["rays"][:, 0])))
+    seen = np.isin(rays, np.flatnonzero(np.isfinite(result.bundle.rays[:, 0])))
     obs = (frames[seen], rays[seen], xy[seen])
     cost = _eq27_cost(result, obs, mean, sigma, noise)
     np.testing.assert_allclose(result.cost, cost, rtol=1e-9)
@@ -287,7 +287,7 @@ def test_pair_elimination_with_shared_unknowns_and_distortion() -> None:
     dense = bundle_adjust(obs, K, seq.R_relative[keyframes], seq.image_size, model, schur="dense", **kw)
     pair = bundle_adjust(obs, K, seq.R_relative[keyframes], seq.image_size, model, schur="pair", **kw)
     np.testing.assert_allclose(pair.K, dense.K, rtol=1e-9, atol=1e-8)
-    np.testing.assert_allclose(pair.info["lam"], dense.info["lam"], rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(pair.bundle.lam, dense.bundle.lam, rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(pair.sigma_f, dense.sigma_f, rtol=1e-6)
     np.testing.assert_allclose(pair.sigma_pp, dense.sigma_pp, rtol=1e-6)
     np.testing.assert_allclose(pair.cost, dense.cost, rtol=1e-10)
@@ -447,7 +447,7 @@ def test_distortion_and_off_centre_principal_point_recovered_from_raw_pairs(pp_o
     assert result.ok and result.residual < 1e-6
     np.testing.assert_allclose(result.K[:, :2, 2], state.pp, atol=1e-4)
     np.testing.assert_allclose(result.focal, state.f, rtol=1e-7)
-    np.testing.assert_allclose(result.info["lam"], state.lam, rtol=1e-6)
+    np.testing.assert_allclose(result.bundle.lam, state.lam, rtol=1e-6)
     # MAP (eq. 27, the calibrator's prior at the image centre, sigma 20 px, noise 1 px): the prior pulls
     # the principal point back by a few percent of its offset
     prior = default_pp_prior(size, 20.0)
@@ -457,7 +457,7 @@ def test_distortion_and_off_centre_principal_point_recovered_from_raw_pairs(pp_o
     assert result.ok and result.residual < 0.01
     assert np.all(np.linalg.norm(result.K[:, :2, 2] - state.pp, axis=1) < 0.05 * np.hypot(*pp_offset))
     np.testing.assert_allclose(result.focal, state.f, rtol=1e-3)
-    np.testing.assert_allclose(result.info["lam"], state.lam, rtol=1e-2)
+    np.testing.assert_allclose(result.bundle.lam, state.lam, rtol=1e-2)
     plain = bundle_adjust(obs, K0, R, size, SQUARE_CONSTANT_PP, pp_prior=prior, analyse=False)
     assert np.max(np.abs(plain.focal / state.f - 1.0)) > 0.05
 
@@ -476,7 +476,7 @@ def test_distortion_with_noise_within_its_own_uncertainty() -> None:
     )
     assert result.ok
     z_pp = (result.K[0, :2, 2] - state.pp[0]) / result.sigma_pp[0]
-    z_lam = (result.info["lam"] - state.lam) / result.info["sigma_lam"]
+    z_lam = (result.bundle.lam - state.lam) / result.bundle.sigma_lam
     assert np.all(np.abs(z_pp) < 4.0) and np.all(result.sigma_pp[0] < 2.0)
     assert np.all(np.abs(z_lam) < 4.0)
     assert np.all(np.abs(result.focal - state.f) < 4.0 * result.sigma_f)
@@ -490,13 +490,13 @@ def test_undistorted_lens_gives_lam_zero(mode) -> None:
     start = dict(distortion=mode, lam_init=np.full(len(K), -0.1), analyse=False)
     mle = bundle_adjust(obs, _centred_start(K, size), R, size, SQUARE_CONSTANT_PP, **start)
     assert mle.ok and mle.residual < 1e-6
-    np.testing.assert_allclose(mle.info["lam"], 0.0, atol=1e-8)
+    np.testing.assert_allclose(mle.bundle.lam, 0.0, atol=1e-8)
     np.testing.assert_allclose(mle.K[:, :2, 2], state.pp, atol=1e-4)
     np.testing.assert_allclose(mle.focal, state.f, rtol=1e-7)
     # MAP: the prior's pull on the principal point leaves a trace of lam, far below a pixel at the corner
     prior = default_pp_prior(size, 20.0)
     result = bundle_adjust(obs, _centred_start(K, size), R, size, SQUARE_CONSTANT_PP, pp_prior=prior, **start)
-    corner = np.abs(result.info["lam"]) * (734.0 / state.f) ** 2 * 734.0  # displacement at the corner, px
+    corner = np.abs(result.bundle.lam) * (734.0 / state.f) ** 2 * 734.0  # displacement at the corner, px
     assert result.ok and np.all(corner < 0.1), corner
 
 
@@ -556,8 +556,8 @@ def test_fixed_lens_pan_only_recovers_f_pp_and_the_shared_distortion() -> None:
     assert result.residual < 1e-6
     np.testing.assert_allclose(result.focal, K[:, 1, 1], rtol=1e-7)
     np.testing.assert_allclose(result.K[:, :2, 2], K[:, :2, 2], atol=1e-4)
-    np.testing.assert_allclose(result.info["lam"], lam, rtol=1e-6)
-    assert np.ptp(result.info["lam"]) == 0.0 and np.ptp(result.focal) == 0.0
+    np.testing.assert_allclose(result.bundle.lam, lam, rtol=1e-6)
+    assert np.ptp(result.bundle.lam) == 0.0 and np.ptp(result.focal) == 0.0
     # the same data without the distortion term: a biased focal length
     plain = bundle_adjust(obs, K0, R, size, FIXED_LENS, analyse=False)
     assert abs(plain.focal[0] / K[0, 1, 1] - 1.0) > 0.01
@@ -574,7 +574,7 @@ def test_shared_distortion_with_noise_within_its_own_uncertainty() -> None:
     )  # fmt: skip
     assert result.ok, result.message
     z_f = (result.focal[0] - K[0, 1, 1]) / result.sigma_f[0]
-    z_lam = (result.info["lam"][0] - lam) / result.info["sigma_lam"][0]
+    z_lam = (result.bundle.lam[0] - lam) / result.bundle.sigma_lam[0]
     assert abs(z_f) < 4.0 and abs(z_lam) < 4.0, (z_f, z_lam)
     assert abs(result.focal[0] / K[0, 1, 1] - 1.0) < 0.005
 

@@ -145,7 +145,7 @@ def test_varying_pp_breakdown_in_configuration_b_is_flagged() -> None:
         assert not varying.ok
         assert varying.motion is not None and varying.motion.status == STATUS_NEAR_AMBIGUOUS
         assert varying.motion.relative_sigma_f > 0.02
-        assert varying.info["solver_ok"]  # the solve itself worked: only the motion is ill-conditioned
+        assert varying.solver_ok  # the solve itself worked: only the motion is ill-conditioned
 
 
 def test_configuration_b_constant_pp_at_moderate_noise_is_confident() -> None:

@@ -18,7 +18,6 @@ this adjuster (the LM iterations and the result).
 from __future__ import annotations
 
 import logging
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -56,7 +55,7 @@ from ptz_selfcal.camera.intrinsics import (
     values_from_matrices,
 )
 from ptz_selfcal.selfcal.degeneracy import analyse_motion, single_axis_is_degenerate
-from ptz_selfcal.selfcal.result import SelfCalibrationResult
+from ptz_selfcal.selfcal.result import BundleDetails, SelfCalibrationResult
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -289,9 +288,9 @@ def _levenberg_marquardt(
     idx = np.where(layout.intr_index >= 0, layout.intr_index, len(sd) - 1)
     sigma_f = sd[idx[:, F]]
     sigma_pp = np.column_stack([sd[idx[:, CX]], sd[idx[:, CY]]])
-    extra: dict[str, Any] = {}
+    lam = sigma_lam = curve = None
     if state.lam is not None and layout.lam_index is not None:
-        extra = {"lam": state.lam.copy(), "sigma_lam": sd[layout.lam_index]}
+        lam, sigma_lam = state.lam.copy(), sd[layout.lam_index]
     elif state.curve is not None and layout.curve_index is not None:
         # sigma of each frame's lam through the curve: J cov J^T with J = d lam / d (c, f)
         _, dlam_dc, dlam_df = state.curve.derivatives(state.values[:, F])
@@ -301,15 +300,8 @@ def _levenberg_marquardt(
             cols = list(layout.curve_index) + ([int(idx_f[i])] if idx_f[i] >= 0 else [])
             g = np.append(dlam_dc[i], dlam_df[i]) if idx_f[i] >= 0 else dlam_dc[i]
             var.append(float(g @ cov[np.ix_(cols, cols)] @ g))
-        extra = {
-            "lam": state.lam.copy(),
-            "sigma_lam": np.sqrt(np.maximum(var, 0.0)),
-            "distortion_curve": (
-                state.curve.coefficients.copy(),
-                state.curve.f_ref,
-                state.curve.half_diagonal,
-            ),
-        }
+        lam, sigma_lam = state.lam.copy(), np.sqrt(np.maximum(var, 0.0))
+        curve = (state.curve.coefficients.copy(), state.curve.f_ref, state.curve.half_diagonal)
 
     rays = np.full((int(ray_ids.max()) + 1, 3), np.nan)
     rays[ray_ids] = state.X
@@ -329,16 +321,18 @@ def _levenberg_marquardt(
         ok=ok,
         message=message,
         cost=cost,
-        info={
-            "rays": rays,
-            "covariance": cov,
-            "residual_variance": variance,
-            "initial_cost": initial_cost,
-            "n_observations": n_obs,
-            "n_rays": n_rays,
-            "model": model,
-            **extra,
-        },
+        bundle=BundleDetails(
+            rays=rays,
+            covariance=cov,
+            residual_variance=variance,
+            initial_cost=initial_cost,
+            n_observations=n_obs,
+            n_rays=n_rays,
+            model=model,
+            lam=lam,
+            sigma_lam=sigma_lam,
+            distortion_curve=curve,
+        ),
     )
 
 

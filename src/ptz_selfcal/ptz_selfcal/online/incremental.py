@@ -287,7 +287,7 @@ class IncrementalCalibrator:
     # ---- internals ------------------------------------------------------------------------
     def _accept(self, result: SelfCalibrationResult, seconds: float) -> None:
         motion = result.motion
-        solver_ok = bool(result.info.get("solver_ok", result.ok))
+        solver_ok = result.solver_converged
         near_ambiguous = motion is not None and motion.status == STATUS_NEAR_AMBIGUOUS
         uncertain = not result.ok and solver_ok and near_ambiguous  # 6.2: best estimate, low confidence
         if not result.ok and not uncertain:

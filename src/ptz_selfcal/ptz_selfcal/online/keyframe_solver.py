@@ -182,12 +182,12 @@ class KeyframeBundleSolver:
             sigma_pp=np.full((n, 2), np.nan),
             residual=math.nan,
             method="warm",
-            info={"solver_ok": True},
+            solver_ok=True,
         )
 
     def _keep_warm_start(self, result: SelfCalibrationResult, keyframes: list[Keyframe]) -> None:
         """Remember an accepted adjustment (reference, K, keyframe id -> R) for _warm_start."""
-        adjusted = "rays" in result.info and usable_result(result)
+        adjusted = result.bundle is not None and usable_result(result)
         if not (self.config.fixed_lens and adjusted and np.all(np.isfinite(result.R))):
             return
         held = {kf.keyframe_id: R.copy() for kf, R in zip(keyframes, result.R[1:])}
@@ -212,7 +212,7 @@ class KeyframeBundleSolver:
         # adjustment on the point matches can resolve
         usable = lm.ok or (
             (lens is not None or self.config.fixed_lens)
-            and bool(lm.info.get("solver_ok", False))
+            and bool(lm.solver_ok)
             and bool(np.all(np.isfinite(lm.K)))
         )
         if not usable or not self.config.bundle_adjustment:
@@ -226,7 +226,7 @@ class KeyframeBundleSolver:
             # a fixed lens: the adjustment's near-ambiguity verdict (6.2) stands, with its own estimate
             # (uncertain: DEGENERATE_MOTION), rather than LM's confident one on homographies (before
             # a hand-held pan's loop closes LM is off by several times its own sigma)
-            ba.info["solver_ok"] = True
+            ba.solver_ok = True
             self.last_method = ba.method
             ba.method = f"{lm.method}+{ba.method}"
             return ba
@@ -342,23 +342,27 @@ class KeyframeBundleSolver:
             distortion=False if lam0 is None else ("shared" if shared else self.distortion_mode),
             lam_init=None if lam0 is None else lam0[keep],
         )
+        details = result.bundle
+        assert details is not None  # bundle_adjust always returns its details
         if (
             lam0 is not None
             and (result.ok or (shared and uncertain_motion(result)))
-            and np.all(np.isfinite(result.info["lam"]))
+            and details.lam is not None
+            and np.all(np.isfinite(details.lam))
         ):
-            self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
+            self.noise_estimate = math.sqrt(float(details.residual_variance))
             if shared:
-                self.shared_lam = float(result.info["lam"][0])
-                self.sigma_shared_lam = float(result.info["sigma_lam"][0])
+                assert details.sigma_lam is not None
+                self.shared_lam = float(details.lam[0])
+                self.sigma_shared_lam = float(details.sigma_lam[0])
             self.lens_estimate = LensEstimate(
                 principal_point=result.K[0, :2, 2].copy(),
                 sigma_pp=np.asarray(result.sigma_pp[0], dtype=float).copy(),
-                lam={ids[j]: float(lam) for j, lam in zip(keep, result.info["lam"]) if ids[j] is not None},
+                lam={ids[j]: float(lam) for j, lam in zip(keep, details.lam) if ids[j] is not None},
                 focal={ids[j]: float(K[1, 1]) for j, K in zip(keep, result.K) if ids[j] is not None},
             )
         if lam0 is None and result.ok:
-            self.noise_estimate = math.sqrt(float(result.info["residual_variance"]))
+            self.noise_estimate = math.sqrt(float(details.residual_variance))
         rel_sigma = float(np.ravel(result.sigma_f)[0]) / float(result.K[0, 1, 1])
         if fixed and usable_result(result) and rel_sigma <= self.config.converged_max_sigma_f:
             # only when it can decide (above that sigma the solution is not CONVERGED anyway)
@@ -386,18 +390,17 @@ class KeyframeBundleSolver:
                         K[j], R[j] = K_j, R_j
             sigma_f, sigma_pp = np.asarray(lm.sigma_f, dtype=float).copy(), np.asarray(lm.sigma_pp).copy()
             sigma_f[keep], sigma_pp[keep] = result.sigma_f, result.sigma_pp
-            info = dict(result.info)
-            if lam0 is not None and "lam" in info:
+            if lam0 is not None and details.lam is not None:
                 lam = lam0.copy()
-                lam[keep] = info["lam"]
-                info["lam"] = lam[:n_frames]
+                lam[keep] = details.lam
+                details = dataclasses.replace(details, lam=lam[:n_frames])
             result = dataclasses.replace(
                 result,
                 K=K[:n_frames],
                 R=R[:n_frames],
                 sigma_f=sigma_f[:n_frames],
                 sigma_pp=sigma_pp[:n_frames],
-                info=info,
+                bundle=details,
             )
         return result
 
@@ -435,7 +438,7 @@ class KeyframeBundleSolver:
                 result.R,
                 image_size,
                 model,
-                rays_init=result.info.get("rays"),
+                rays_init=None if result.bundle is None else result.bundle.rays,
                 pp_prior=prior,
                 noise_sigma=noise,
                 max_iterations=min(self.config.ba_max_iterations, 6),

@@ -166,7 +166,6 @@ def linear_selfcalibration(
         iterations=0,
         ok=True,
         message="",
-        info={"singular_values": s.tolist(), "equations": int(A.shape[0])},
     )
     if analyse:
         result.motion = analyse_motion(R, K, image_size)

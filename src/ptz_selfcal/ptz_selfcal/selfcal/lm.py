@@ -215,7 +215,7 @@ def lm_selfcalibration(
         ok=ok,
         message=message,
         cost=float(sol.cost),
-        info={"status": int(sol.status), "solver_message": sol.message, "solver_ok": ok},
+        solver_ok=ok,
     )
     if analyse:
         result.motion = analyse_motion(

@@ -2,15 +2,32 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ptz_selfcal.camera.geometry import quaternion_from_matrix
+from ptz_selfcal.camera.intrinsics import IntrinsicsModel
 from ptz_selfcal.selfcal.degeneracy import MotionReport
 
 Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class BundleDetails:
+    """What a bundle adjustment (section 5) knows besides K and R."""
+
+    rays: Array  # (n_rays, 3) unit rays in the reference frame (NaN: not observed)
+    covariance: Array  # of the adjustment's unknowns (NaN without the uncertainty)
+    residual_variance: float  # of the image residuals, px^2: the measured image noise
+    initial_cost: float
+    n_observations: int
+    n_rays: int
+    model: IntrinsicsModel
+    lam: Array | None = None  # each frame's division coefficient when distortion is estimated (7)
+    sigma_lam: Array | None = None
+    distortion_curve: tuple[Array, float, float] | None = None  # lam(f) curve: coefficients, f_ref, D
 
 
 @dataclass
@@ -32,7 +49,13 @@ class SelfCalibrationResult:
     message: str = ""
     motion: MotionReport | None = None
     cost: float = float("nan")
-    info: dict = field(default_factory=dict)
+    # whether the solver itself converged, apart from the motion's verdict (None: as `ok`)
+    solver_ok: bool | None = None
+    bundle: BundleDetails | None = None  # a bundle adjustment's rays, noise and distortion
+
+    @property
+    def solver_converged(self) -> bool:
+        return self.ok if self.solver_ok is None else self.solver_ok
 
     @property
     def n_frames(self) -> int:
