@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.lens.correction import LensCorrection
 from ptz_selfcal.lens.interface import LensEstimate, LensModel
+from ptz_selfcal.status import TrackingState
 
 Array = NDArray[np.float64]
 
@@ -148,7 +149,8 @@ class SessionLensHook:
 
         `calibrated`: the session already holds a calibration (on corrected coordinates) for this
         reference. A raw homography must then never reach it (a distorted lens's raw homography puts
-        the focal length far off): a frame the correction cannot reach (its state is not persisted, so after a
+        the focal length far off): a frame the correction cannot reach (its state is not persisted, so
+        after a
         restart on a restored tracker map it starts empty) goes out without a homography, K from the
         zoom model.
         """
@@ -156,7 +158,7 @@ class SessionLensHook:
         if lens is None or H is None or not np.all(np.isfinite(H)):
             return H, state
         kid = int(keyframe_id)
-        if state == "NEW_KEYFRAME":
+        if state == TrackingState.NEW_KEYFRAME:
             lens.add_keyframe(kid, H)
             waiting = self._early_links.pop(kid, None)
             if waiting is not None:  # its matches came first
@@ -166,10 +168,10 @@ class SessionLensHook:
             return corrected, state
         if calibrated:
             self.uncorrectable_frames += 1
-            return None, "TRACKING_LOST"
-        if self.hold_keyframes and state == "NEW_KEYFRAME" and kid != lens.reference_id:
+            return None, TrackingState.TRACKING_LOST
+        if self.hold_keyframes and state == TrackingState.NEW_KEYFRAME and kid != lens.reference_id:
             self.held_keyframes += 1
-            return H, "TRACKING"
+            return H, TrackingState.TRACKING
         return H, state
 
     def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
