@@ -149,10 +149,9 @@ class SessionLensHook:
 
         `calibrated`: the session already holds a calibration (on corrected coordinates) for this
         reference. A raw homography must then never reach it (a distorted lens's raw homography puts
-        the focal length far off): a frame the correction cannot reach (its state is not persisted, so
-        after a
-        restart on a restored tracker map it starts empty) goes out without a homography, K from the
-        zoom model.
+        the focal length far off): a frame the correction cannot reach (its state is not persisted,
+        so after a restart on a restored tracker map it starts empty) goes out without a homography,
+        K from the zoom model.
         """
         lens = self._ensure(reference, width, height)
         if lens is None or H is None or not np.all(np.isfinite(H)):
