@@ -1,6 +1,6 @@
 """`ptz-selfcal run`: a bag through the real node processes in lock-step; every image gets its CameraInfo.
 
-The bag (conftest short_synth_bag) starts where the shipped prior does not: f 25 % above the prior's,
+The bag (conftest short_synth_bag) starts where the shipped prior does not: the prior's f 25 % short,
 the principal point 20 px off centre, zoom encoders through synth's nonlinear, lagged, noisy law. These
 tests count and match outputs; the accuracy of a replay is tests/bag/test_eval.py's.
 """
