@@ -403,6 +403,16 @@ class BagReader:
             return self._recovered.start_ns
         return int(self._reader.start_time)
 
+    def unread(self, topic: str) -> int | None:
+        """Messages of a topic the damage made unreadable: 0 for a sound bag, None when unknown (a
+        damaged bag without metadata.yaml)."""
+        if self._recovered is None:
+            return 0
+        rec = self._recovered
+        if not rec.expected:
+            return None
+        return max(0, rec.expected.get(topic, 0) - rec.counts.get(topic, 0))
+
     def topics(self) -> list[TopicInfo]:
         if self._recovered is not None:
             rec = self._recovered

@@ -31,7 +31,15 @@ from pathlib import Path
 from typing import Any
 
 from ptz_selfcal import topics
-from ptz_selfcal.tools.bagio import BagError, BagMessage, BagReader, BagWriter, header_stamp_ns, msg_class
+from ptz_selfcal.tools.bagio import (
+    BagError,
+    BagMessage,
+    BagReader,
+    BagWriter,
+    header_stamp_ns,
+    msg_class,
+    qos_from_rclpy,
+)
 from ptz_selfcal.tools.cli import CliError
 from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, prepare
 
@@ -79,6 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--joints-topic", help="bag topic of the encoders (default: /ptz/joint_states)")
     parser.add_argument("--namespace", help="namespace of the nodes (default: a private one per run)")
     parser.add_argument("--record-frames", action="store_true", help="also record frame_in (working images)")
+    parser.add_argument(
+        "--with-images", action="store_true", help="copy the input image topic into the output bag"
+    )
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many images (0: all)")
     parser.add_argument(
         "--deterministic",
@@ -176,6 +187,15 @@ def run(args: argparse.Namespace) -> int:
             reader, args.joints_topic, (topics.JOINT_STATES,), ("sensor_msgs/msg/JointState",), "joints"
         )
         bag_topics = {t.name: t.msgtype for t in reader.topics()}
+        bag_qos = {t.name: t.qos for t in reader.topics()}
+        bag_start = reader.start_ns
+        unread = reader.unread(image_topic)
+        if reader.damage:
+            lost = "an unknown number of" if unread is None else str(unread)
+            print(
+                f"run: warning: {reader.damage}; replaying the {total} readable images ({lost} lost)",
+                file=sys.stderr,
+            )
     if args.max_frames > 0:
         total = min(total, args.max_frames)
     out = Path(args.out)
@@ -219,6 +239,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             replay = _Replay(args, supervisor, writer, namespace, image_topic, image_type, total, bag_topics)
             replay.encoder_topic = joints[0] if joints else None
+            replay.bag_qos = bag_qos
+            replay.last_bag_time = bag_start
             stats = replay.run()
         finally:
             writer.close()
@@ -230,6 +252,7 @@ def run(args: argparse.Namespace) -> int:
         f"run: {stats.calibrated}/{stats.total} images got a CameraInfo (coverage {coverage:.1f}%), "
         f"{stats.skipped} skipped by the nodes, {stats.lost} lost (timeout), "
         f"{stats.unmatched} unmatched; "
+        f"{_unread_text(unread)}"
         f"{stats.rate:.1f} frames/s, latency in lock-step p50 {p50:.1f} ms p95 {p95:.1f} ms "
         f"(to the homography: p50 {t50:.1f} ms p95 {t95:.1f} ms); "
         f"wrote {out}",
@@ -238,6 +261,13 @@ def run(args: argparse.Namespace) -> int:
     cpu = {**stats.cpu_seconds, "run (player+recorder)": _own_cpu_seconds()}
     print(f"run: CPU seconds: {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}", file=sys.stderr)
     return 0
+
+
+def _unread_text(unread: int | None) -> str:
+    if unread == 0:
+        return ""
+    count = "an unknown number of" if unread is None else str(unread)
+    return f"{count} images unreadable in the damaged input bag; "
 
 
 def _percentiles_ms(values: list[float]) -> tuple[float, float]:
@@ -281,7 +311,10 @@ class _Replay:
         self.in_flight: deque[_InFlight] = deque()
         self.stamp_times: OrderedDict[int, int] = OrderedDict()  # image stamp -> input bag time
         self.sent_times: OrderedDict[int, float] = OrderedDict()  # image stamp -> when it was sent
+        # Bag time of the newest image sent: outputs with no image stamp (diagnostics) get it, so the
+        # output bag's timeline is the input's (run() sets the input's start before the first image).
         self.last_bag_time = 0
+        self.bag_qos: dict[str, tuple] = {}  # input topic -> its recorded QoS profiles
         self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
         self.encoder_topic: str | None = topics.bag_topic(topics.JOINT_STATES)
         self._lost_logged = 0
@@ -297,7 +330,7 @@ class _Replay:
                 print(f"run: warning: {exc}; replaying what could be read", file=sys.stderr)
 
     def _copy(self, msg: BagMessage) -> None:
-        self.writer.add_topic(msg.topic, msg.msgtype)
+        self.writer.add_topic(msg.topic, msg.msgtype, self.bag_qos.get(msg.topic, ()))
         self.writer.write_raw(msg.topic, msg.timestamp_ns, msg.raw)
 
     # ---------------------------------------------------------------- ROS side
@@ -388,6 +421,7 @@ class _Replay:
                 )
             self.supervisor.start()
             self._wait_ready(node, executor, image_pub, encoder_pub)
+            self._record_qos(node)
             self.stats.started = time.monotonic()
             self._lockstep(executor, image_pub, encoder_pub)
             self._drain(executor)
@@ -404,6 +438,13 @@ class _Replay:
         if interrupted.is_set():
             raise KeyboardInterrupt
         return self.stats
+
+    def _record_qos(self, node: Any) -> None:
+        """The output topics' QoS as their publishers offer it, recorded like rosbag2 does."""
+        for topic in self.output_topics:
+            name = f"{self.namespace}{topic}" if topic.startswith("/") else f"{self.namespace}/{topic}"
+            infos = node.get_publishers_info_by_topic(name)
+            self.writer.set_qos(topics.bag_topic(topic), [qos_from_rclpy(i.qos_profile) for i in infos])
 
     def _check_supervisor(self) -> None:
         self.supervisor.poll()
@@ -516,6 +557,8 @@ class _Replay:
                 self.last_bag_time = msg.timestamp_ns
                 self.in_flight.append(_InFlight(stamp, msg.timestamp_ns, time.monotonic(), stats.sent))
                 image_pub.publish(msg.raw)
+                if args.with_images:
+                    self._copy(msg)
                 stats.sent += 1
                 pump()
             executor.spin_once(timeout_sec=0.02)
