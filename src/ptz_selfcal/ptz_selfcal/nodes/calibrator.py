@@ -43,7 +43,15 @@ from ptz_selfcal.nodes.conversions import (
     stamp_to_sec,
 )
 from ptz_selfcal.nodes.params import CalibratorNodeConfig, config_kwargs, params_from
-from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import (
+    CountedWarnings,
+    FailureRun,
+    InputWatch,
+    qos_overrides,
+    reliable_qos,
+    run_node,
+    set_level,
+)
 from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
@@ -93,7 +101,15 @@ class CalibratorNode(Node):
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
-        self.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self._on_homography, reliable_qos())
+        # KEEP_ALL: every homography gets its CameraInfo (small messages; the tracker's queue is the bounded
+        # one); the standard overrides let a deployment bound it
+        self.create_subscription(
+            HomographyStamped,
+            topics.HOMOGRAPHY,
+            self._on_homography,
+            reliable_qos(),
+            qos_overriding_options=qos_overrides(),
+        )
         self.create_subscription(KeyframeMatches, topics.KEYFRAMES, self._on_keyframe_matches, reliable_qos())
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self._runner.start(inline=p["inline_solves"])
@@ -220,7 +236,15 @@ class CalibratorNode(Node):
             return
         self._runner.wake()
 
+    # diagnostics' own state, made at the first report (from the node's parameters)
+    _homography_watch: InputWatch | None = None
+    _failing: FailureRun | None = None
+
     def _publish_diagnostics(self) -> None:
+        watch, failing_run = self._homography_watch, self._failing
+        if watch is None or failing_run is None:
+            watch = self._homography_watch = InputWatch("homographies", self._p["stale_timeout"])
+            failing_run = self._failing = FailureRun()
         counters: dict[str, Any] = {"homographies_in": 0, "camera_info_out": 0}
         counters.update(sorted(self._counts.items()))
         counters.update(self._runner.read(_session_counters))  # type: ignore[arg-type]
@@ -240,13 +264,19 @@ class CalibratorNode(Node):
         counters["reoptimise_pending"] = self._runner.pending
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
-        status.hardware_id = topics.CAMERA_FRAME_ID
-        status.level = DiagnosticStatus.OK
+        status.hardware_id = self._p["camera_name"]
+        error, warn = [], []
+        failing = failing_run.update(self._counts["homographies_in"], self._counts["calibrator_error"])
+        if failing >= self._p["error_threshold"]:
+            error.append(f"the last {failing} frames failed with an internal error (calibrator_error)")
         if self._last_status in WARN_STATUSES:
-            status.level = DiagnosticStatus.WARN
+            warn.append(f"status {self._last_status}")
         if self._counts.get("calibrator_error") or self._counts.get("worker_error"):
-            status.level = DiagnosticStatus.WARN
-        status.message = f"{counters['camera_info_out']} frames calibrated; last status {self._last_status}"
+            errors = self._counts["calibrator_error"] + self._counts["worker_error"]
+            warn.append(f"{errors} internal errors")
+        stale = watch.stale(self._counts["homographies_in"])
+        ok = f"{counters['camera_info_out']} frames calibrated; last status {self._last_status}"
+        set_level(status, ok, error=error, stale=[stale] if stale else [], warn=warn)
         status.values = diagnostic_values(counters)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()

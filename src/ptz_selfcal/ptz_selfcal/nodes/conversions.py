@@ -17,6 +17,7 @@ DCT scaling averages the same blocks).
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -421,35 +422,90 @@ class Param:
     name: str
     default: Any
     description: str
-    check: Any = None  # callable(value) -> error text or None
+    check: Any = None  # callable(value) -> error text or None; an InRange/OneOf also gives the descriptor
     read_only: bool = True
+    bounds: tuple[float, float] | None = None  # the descriptor's range when `check` does not carry it
 
 
-def in_range(lo: float, hi: float) -> Any:
-    def check(value: Any) -> str | None:
-        if not (lo <= value <= hi):  # also rejects NaN
-            return f"must be in [{lo}, {hi}], got {value}"
+@dataclass(frozen=True)
+class InRange:
+    """Check of an inclusive range; its bounds also become the parameter descriptor's range."""
+
+    lo: float
+    hi: float
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        return (self.lo, self.hi)
+
+    def __call__(self, value: Any) -> str | None:
+        if not (self.lo <= value <= self.hi):  # also rejects NaN
+            return f"must be in [{self.lo}, {self.hi}], got {value}"
         return None
 
-    return check
+
+@dataclass(frozen=True)
+class OneOf:
+    """Check of a string's choices; they also go into the parameter's description."""
+
+    choices: tuple[str, ...]
+
+    def __call__(self, value: Any) -> str | None:
+        if value in self.choices:
+            return None
+        return f"must be one of {', '.join(self.choices)}, got {value!r}"
 
 
-def one_of(*choices: str) -> Any:
-    def check(value: Any) -> str | None:
-        return None if value in choices else f"must be one of {', '.join(choices)}, got {value!r}"
+def in_range(lo: float, hi: float) -> InRange:
+    return InRange(lo, hi)
 
-    return check
+
+def one_of(*choices: str) -> OneOf:
+    return OneOf(tuple(choices))
+
+
+_INT64 = (-(1 << 63), (1 << 63) - 1)
+
+
+def parameter_descriptor(spec: Param, *, read_only: bool | None = None) -> Any:
+    """The ParameterDescriptor of `spec`: description, read_only, its range (FloatingPointRange for a
+    float, IntegerRange for an int, of each element for an array) and its choices."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+    description = spec.description
+    descriptor = ParameterDescriptor(read_only=spec.read_only if read_only is None else read_only)
+    choices = getattr(spec.check, "choices", None)
+    if choices:
+        descriptor.additional_constraints = f"one of: {', '.join(choices)}"
+        description = f"{description} (one of: {', '.join(choices)})"
+    bounds = spec.bounds or getattr(spec.check, "bounds", None)
+    sample = spec.default[0] if isinstance(spec.default, list | tuple) and spec.default else spec.default
+    if bounds is not None and not isinstance(sample, bool):
+        lo, hi = bounds
+        if isinstance(sample, int):
+            # an integer parameter's range is in integers: the whole numbers inside the real bounds
+            lo_i = _INT64[0] if lo == -math.inf else max(_INT64[0], math.ceil(lo))
+            hi_i = _INT64[1] if hi == math.inf else min(_INT64[1], math.floor(hi))
+            descriptor.integer_range = [IntegerRange(from_value=lo_i, to_value=hi_i, step=0)]
+        elif isinstance(sample, float):
+            descriptor.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+    descriptor.description = description
+    return descriptor
 
 
 def declare_params(node: Any, specs: list[Param]) -> dict[str, Any]:
-    """Declare every parameter with its description, check types and ranges; ConfigError otherwise."""
-    from rcl_interfaces.msg import ParameterDescriptor
+    """Declare every parameter with its descriptor (description, range, choices), check types and
+    ranges; ConfigError otherwise.
 
+    Declared first without its range, so that a bad start-up value gets this package's message (rclpy's
+    range check would refuse it with its own), then given the full descriptor: from then on rclpy's
+    parameter service refuses an out-of-range SetParameters with the old value kept."""
     values: dict[str, Any] = {}
     for spec in specs:
-        descriptor = ParameterDescriptor(description=spec.description, read_only=spec.read_only)
+        loose = parameter_descriptor(spec, read_only=False)
+        loose.integer_range, loose.floating_point_range = [], []
         try:
-            value = node.declare_parameter(spec.name, spec.default, descriptor).value
+            value = node.declare_parameter(spec.name, spec.default, loose).value
         except Exception as exc:  # rclpy raises several exception types for wrongly typed overrides
             raise ConfigError(f"parameter {spec.name}: {_first_line(exc)}") from exc
         if isinstance(spec.default, float) and isinstance(value, int):
@@ -460,6 +516,12 @@ def declare_params(node: Any, specs: list[Param]) -> dict[str, Any]:
             error = spec.check(value)
             if error:
                 raise ConfigError(f"parameter {spec.name} {error}")
+        descriptor = parameter_descriptor(spec)
+        descriptor.type = node.describe_parameter(spec.name).type  # the declared type (static typing)
+        try:
+            node.set_descriptor(spec.name, descriptor)
+        except Exception as exc:  # a value the check let through but the descriptor's range refuses
+            raise ConfigError(f"parameter {spec.name}: {_first_line(exc)}") from exc
         values[spec.name] = value
     return values
 

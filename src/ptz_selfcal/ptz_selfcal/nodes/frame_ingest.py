@@ -49,7 +49,15 @@ from ptz_selfcal.nodes.conversions import (
     stamp_to_ns,
     stamp_to_sec,
 )
-from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import (
+    CountedWarnings,
+    FailureRun,
+    InputWatch,
+    qos_overrides,
+    reliable_qos,
+    run_node,
+    set_level,
+)
 from ptz_selfcal_msgs.msg import IngestedFrame
 
 PARAMS = [
@@ -67,12 +75,18 @@ PARAMS = [
     ),
     Param(
         "queue_policy",
-        "lossless",
-        "lossless: queue every frame (KEEP_ALL); latest: keep only the newest queue_depth frames so a slow "
-        "stage sheds frames (counted downstream from gaps in seq)",
+        "latest",
+        "latest: keep only the newest queue_depth frames (KEEP_LAST: bounded memory and latency live), so a "
+        "slow stage sheds frames (counted downstream from gaps in seq); lossless: queue every frame "
+        "(KEEP_ALL, for replays that wait for each result)",
         one_of("lossless", "latest"),
     ),
-    Param("queue_depth", 2, "KEEP_LAST depth of image queues with queue_policy latest", in_range(1, 100)),
+    Param(
+        "queue_depth",
+        50,
+        "KEEP_LAST depth of image queues with queue_policy latest (50: bursts up to 50 frames are kept)",
+        in_range(1, 1000),
+    ),
     Param(
         "working_width",
         640,
@@ -138,6 +152,21 @@ PARAMS = [
     ),
     Param("mono16_max", 65535, "mono16 value shown as white (4095 for a 12-bit sensor)", in_range(1, 65535)),
     Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
+    Param("camera_name", "ptz", "name of the camera, the diagnostics' hardware_id", None),
+    Param(
+        "stale_timeout",
+        5.0,
+        "seconds without images or without encoder messages after which diagnostics report STALE (also "
+        "before the first one)",
+        in_range(0.1, 3600.0),
+    ),
+    Param(
+        "error_threshold",
+        3,
+        "consecutive unusable inputs (images, or encoder messages without any of joint_names) after which "
+        "diagnostics report ERROR",
+        in_range(1, 1_000_000),
+    ),
 ]
 
 
@@ -211,7 +240,7 @@ class FrameIngest(Node):
             if p["sensor_reliability"] == "best_effort"
             else ReliabilityPolicy.RELIABLE,
         )
-        encoder_qos = QoSProfile(depth=100, reliability=sensor.reliability)
+        encoder_qos = QoSProfile(depth=100, reliability=sensor.reliability)  # KEEP_LAST: bounded
         # latest: the writer keeps only the newest frames too, so a slow tracker never backs frames up here
         out_qos = reliable_qos() if p["queue_policy"] == "lossless" else reliable_qos(p["queue_depth"])
         self._pub = self.create_publisher(IngestedFrame, topics.FRAME_IN, out_qos)
@@ -219,14 +248,34 @@ class FrameIngest(Node):
         # raw=True: the callback gets the serialized message, whose header is read in place, so a huge image
         # is refused before any copy of its pixels and a good one is converted without rclpy's two copies
         if p["input"] in ("raw", "both"):
-            self.create_subscription(Image, topics.IMAGE_RAW, self._on_raw, sensor, raw=True)
+            self.create_subscription(
+                Image,
+                topics.IMAGE_RAW,
+                self._on_raw,
+                sensor,
+                raw=True,
+                qos_overriding_options=qos_overrides(),
+            )
         if p["input"] in ("compressed", "both"):
             self.create_subscription(
-                CompressedImage, topics.IMAGE_COMPRESSED, self._on_compressed, sensor, raw=True
+                CompressedImage,
+                topics.IMAGE_COMPRESSED,
+                self._on_compressed,
+                sensor,
+                raw=True,
+                qos_overriding_options=qos_overrides(),
             )
         self._joint_sub = self.create_subscription(
-            JointState, topics.JOINT_STATES, self._on_joints, encoder_qos
+            JointState,
+            topics.JOINT_STATES,
+            self._on_joints,
+            encoder_qos,
+            qos_overriding_options=qos_overrides(),
         )
+        self._image_watch = InputWatch("images", p["stale_timeout"])
+        self._encoder_watch = InputWatch("encoder messages", p["stale_timeout"])
+        self._bad_images = FailureRun()
+        self._bad_encoders = FailureRun()
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         # Retries only while frames wait (for encoders or a subscriber): an always-on 50 Hz timer costs
         # every frame's executor (each rclpy wake-up ~0.6 ms of CPU) and delays the frames behind it.
@@ -468,14 +517,32 @@ class FrameIngest(Node):
         counters["skipped_total"] = skipped
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
-        status.hardware_id = topics.CAMERA_FRAME_ID
+        status.hardware_id = self._p["camera_name"]
+        error, warn = [], []
+        # a duplicate (the raw and the compressed copy of one image) is no failure of the input
+        duplicates = self._counts["skipped_duplicate_stamp"]
+        bad_run = self._bad_images.update(self._counts["frames_in"] - duplicates, skipped - duplicates)
+        if bad_run >= self._p["error_threshold"]:
+            unusable = sorted(k.removeprefix("skipped_") for k in self._counts if k.startswith("skipped_"))
+            error.append(f"the last {bad_run} images were all unusable ({', '.join(unusable)})")
+        joints = list(self._encoder_config.joints)
+        encoder_run = self._bad_encoders.update(
+            self._counts["encoder_messages"], self._counts["encoder_no_known_joint"]
+        )
+        if encoder_run >= self._p["error_threshold"]:
+            error.append(f"the last {encoder_run} joint_states carry none of joint_names {joints}")
+        stale = [
+            reason
+            for reason in (
+                self._image_watch.stale(self._counts["frames_in"]),
+                self._encoder_watch.stale(self._counts["encoder_messages"]),
+            )
+            if reason
+        ]
         if skipped > self._last_skipped_total:
-            status.level = DiagnosticStatus.WARN
-            status.message = f"{skipped - self._last_skipped_total} frames skipped since the last report"
-        else:
-            status.level = DiagnosticStatus.OK
-            status.message = f"{counters['frames_out']} frames ingested"
+            warn.append(f"{skipped - self._last_skipped_total} frames skipped since the last report")
         self._last_skipped_total = skipped
+        set_level(status, f"{counters['frames_out']} frames ingested", error=error, stale=stale, warn=warn)
         status.values = diagnostic_values(counters)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()

@@ -54,7 +54,14 @@ from ptz_selfcal.nodes.conversions import (
     one_of,
     stamp_to_sec,
 )
-from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import (
+    CountedWarnings,
+    FailureRun,
+    qos_overrides,
+    reliable_qos,
+    run_node,
+    set_level,
+)
 from ptz_selfcal.persist.atomic_file import atomic_write_bytes, remove_stale_temporaries
 from ptz_selfcal.status import KEYFRAME_STATES, LOST_STATES, TrackingState
 from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatches
@@ -62,12 +69,18 @@ from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame, KeyframeMatch
 PARAMS = [
     Param(
         "queue_policy",
-        "lossless",
-        "lossless: process every frame (KEEP_ALL); latest: keep only the newest queue_depth frames, shedding "
-        "the others (counted as frames_dropped from gaps in seq)",
+        "latest",
+        "latest: keep only the newest queue_depth frames (KEEP_LAST: bounded memory and latency live), "
+        "shedding the others (counted as frames_dropped from gaps in seq); lossless: process every frame "
+        "(KEEP_ALL, for replays that wait for each result)",
         one_of("lossless", "latest"),
     ),
-    Param("queue_depth", 2, "KEEP_LAST depth of the input queue with queue_policy latest", in_range(1, 100)),
+    Param(
+        "queue_depth",
+        50,
+        "KEEP_LAST depth of the input queue with queue_policy latest (50: bursts up to 50 frames are kept)",
+        in_range(1, 1000),
+    ),
     Param(
         "wait_for_subscribers",
         1,
@@ -95,6 +108,13 @@ PARAMS = [
         "seconds at least between two saves of the keyframe map (saved when it changed, by a background "
         "thread, and on shutdown)",
         in_range(0.05, 86400.0),
+    ),
+    Param("camera_name", "ptz", "name of the camera, the diagnostics' hardware_id", None),
+    Param(
+        "error_threshold",
+        3,
+        "consecutive frames failing with an internal error after which diagnostics report ERROR",
+        in_range(1, 1_000_000),
     ),
 ]
 
@@ -131,8 +151,14 @@ def tracker_params() -> list[Param]:
         if isinstance(default, tuple):
             default = list(default)
         description = comments.get(f.name, f"TrackerConfig.{f.name} (frontend/tracker_config.py)")
-        params.append(Param(f"tracker.{f.name}", default, description, _tracker_check(f.name, default)))
+        check = _tracker_check(f.name, default)
+        params.append(Param(f"tracker.{f.name}", default, description, check, bounds=_tracker_bounds(f.name)))
     return params
+
+
+def _tracker_bounds(name: str) -> tuple[float, float]:
+    """The descriptor's range of what _tracker_check accepts (a fraction's 0 is refused by the check)."""
+    return (0.0, 1.0) if _FRACTIONS & set(name.split("_")) else (0.0, sys.float_info.max)
 
 
 def _tracker_check(name: str, default: Any) -> Any:
@@ -184,7 +210,11 @@ class HomographyTrackerNode(Node):
         self._pub = self.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
         self._kf_pub = self.create_publisher(KeyframeMatches, topics.KEYFRAMES, reliable_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
-        self.create_subscription(IngestedFrame, topics.FRAME_IN, self._on_frame, qos)
+        self.create_subscription(
+            IngestedFrame, topics.FRAME_IN, self._on_frame, qos, qos_overriding_options=qos_overrides()
+        )
+        self._p = p
+        self._failing = FailureRun()
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self._held: deque[tuple[Any, Any]] = deque()  # (publisher, message) waiting for subscribers
         self._wait_subs = p["wait_for_subscribers"]
@@ -428,12 +458,19 @@ class HomographyTrackerNode(Node):
         counters["keyframes_subscribers"] = self._kf_pub.get_subscription_count()
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
-        status.hardware_id = topics.CAMERA_FRAME_ID
+        status.hardware_id = self._p["camera_name"]
         lost = sum(self._state_counts[state] for state in LOST_STATES)
-        status.level = DiagnosticStatus.OK
-        status.message = f"{counters['frames_out']} frames tracked ({lost} lost or textureless)"
+        failing = self._failing.update(self._counts["frames_in"], self._counts["tracker_error"])
+        error = []
+        if failing >= self._p["error_threshold"]:
+            error.append(f"the last {failing} frames failed with an internal error (tracker_error)")
+        warn = []
         if self._counts.get("tracker_error") or self._counts.get("frames_dropped"):
-            status.level = DiagnosticStatus.WARN
+            warn.append(
+                f"{self._counts['tracker_error']} tracker errors, {self._counts['frames_dropped']} dropped"
+            )
+        ok = f"{counters['frames_out']} frames tracked ({lost} lost or textureless)"
+        set_level(status, ok, error=error, warn=warn)
         status.values = diagnostic_values(counters)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()

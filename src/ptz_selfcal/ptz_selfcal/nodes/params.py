@@ -38,6 +38,19 @@ class CalibratorNodeConfig:
     diagnostics_period: float = setting(
         1.0, "seconds between DiagnosticArray messages", bounds=(0.05, 3600.0)
     )
+    camera_name: str = setting(
+        "ptz", "name of the camera, the diagnostics' hardware_id (camera_info_manager's camera_name)"
+    )
+    stale_timeout: float = setting(
+        5.0,
+        "seconds without a homography after which diagnostics report STALE (also before the first one)",
+        bounds=(0.1, 3600.0),
+    )
+    error_threshold: int = setting(
+        3,
+        "internal errors (frame path or worker) after which diagnostics report ERROR",
+        bounds=(1, 1_000_000),
+    )
     inline_solves: bool = setting(
         False,
         "solve in the frame callback before the next frame instead of in the worker (each solve completes "
@@ -60,7 +73,8 @@ def params_from(config: type, *, prefix: str = "", exclude: Collection[str] = ()
         default = getattr(defaults, f.name)
         check = _check(s, default, f"{config.__name__}.{f.name}")
         value = list(default) if isinstance(default, tuple) else default  # ROS has arrays, not tuples
-        params.append(Param(prefix + (s.param or f.name), value, s.description, check))
+        bounds = None if isinstance(default, bool | str) else s.bounds  # the descriptor's range
+        params.append(Param(prefix + (s.param or f.name), value, s.description, check, bounds=bounds))
     return params
 
 

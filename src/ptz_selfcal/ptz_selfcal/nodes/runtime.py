@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import sys
+import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from ptz_selfcal.nodes.conversions import ConfigError
 
@@ -19,6 +22,12 @@ def reliable_qos(depth: int = 0) -> QoSProfile:
     if depth <= 0:
         return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def qos_overrides() -> QoSOverridingOptions:
+    """rclpy's standard QoS overrides (history, depth, reliability): a user sets e.g.
+    `qos_overrides./ptz/image_raw.subscription.depth` as a parameter, as for any ROS node."""
+    return QoSOverridingOptions.with_default_policies()
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "node") -> int:
@@ -70,3 +79,66 @@ class CountedWarnings:
         if kind not in self._warned:
             self._warned.add(kind)
             self._logger.warning(f"{message} (further ones counted in diagnostics)")
+
+
+class InputWatch:
+    """Whether an input still arrives, from its counter read at each diagnostics report: stale when the
+    count has not grown for `timeout` seconds, or never has."""
+
+    def __init__(self, what: str, timeout: float) -> None:
+        self.what = what
+        self.timeout = timeout
+        self._count = 0
+        self._since: float | None = None  # monotonic time of the report that saw the count grow
+
+    def stale(self, count: int, now: float | None = None) -> str | None:
+        """None while the input arrives, else why it is stale."""
+        now = time.monotonic() if now is None else now
+        if count > self._count:
+            self._count, self._since = count, now
+        if self._since is None:
+            return f"no {self.what} received yet"
+        age = now - self._since
+        return f"no {self.what} for {age:.1f} s" if age > self.timeout else None
+
+
+class FailureRun:
+    """Consecutive failures of an input, from its counters (all, failed) read at each report: the run
+    grows while every new input failed and ends with any good one."""
+
+    def __init__(self) -> None:
+        self._total = 0
+        self._failed = 0
+        self.run = 0
+
+    def update(self, total: int, failed: int) -> int:
+        new, new_failed = total - self._total, failed - self._failed
+        self._total, self._failed = total, failed
+        if new > 0:
+            self.run = self.run + new if new_failed >= new else 0
+        return self.run
+
+
+def set_level(
+    status: Any,
+    ok: str,
+    *,
+    error: Iterable[str] = (),
+    stale: Iterable[str] = (),
+    warn: Iterable[str] = (),
+) -> None:
+    """A DiagnosticStatus's level and message: ERROR (cannot work) over STALE (no input) over WARN over
+    OK; the message gives the reasons of the level, then `ok` (what the node has done)."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    for level, reasons in (
+        (DiagnosticStatus.ERROR, list(error)),
+        (DiagnosticStatus.STALE, list(stale)),
+        (DiagnosticStatus.WARN, list(warn)),
+    ):
+        if reasons:
+            status.level = level
+            status.message = "; ".join([*reasons, ok])
+            return
+    status.level = DiagnosticStatus.OK
+    status.message = ok
