@@ -58,6 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="passed to run: each solve completes before the next frame",
     )
+    parser.add_argument(
+        "--with-images", action="store_true", help="passed to run: copy the input images into the output bag"
+    )
     parser.add_argument("--run-arg", action="append", default=[], help=argparse.SUPPRESS)
 
 
@@ -119,6 +122,19 @@ def read_output_bag(path: str | Path, data: BagData | None = None) -> BagData:
             elif msg.topic == topics.bag_topic(topics.HOMOGRAPHY):
                 data.reference[stamp] = _stamp_ns(m.reference_stamp)
     return data
+
+
+def input_damage(path: str | Path) -> dict[str, Any] | None:
+    """What a damaged input bag lost ({damage, unreadable_frames (None: unknown)}); None if it is sound."""
+    with BagReader(path) as reader:
+        if not reader.damage:
+            return None
+        names = [t.name for t in reader.topics() if t.name in _IMAGE_TOPICS]
+        unread = [reader.unread(n) for n in names]
+        return {
+            "damage": reader.damage,
+            "unreadable_frames": None if None in unread else sum(n or 0 for n in unread),
+        }
 
 
 def read_image_stamps(path: str | Path) -> list[int]:
@@ -369,13 +385,22 @@ def run(args: argparse.Namespace) -> int:
         output_bag = out_dir / "output_bag"
         if output_bag.exists():
             raise CliError(f"{output_bag}: already exists (remove it or choose another --out-dir)")
-        run_args = [*args.run_arg, *(["--deterministic"] if args.deterministic else [])]
+        run_args = [
+            *args.run_arg,
+            *(["--deterministic"] if args.deterministic else []),
+            *(["--with-images"] if args.with_images else []),
+        ]
         run_info = run_pipeline(in_bag, output_bag, args.params, args.quiet, run_args)
         data = BagData(image_stamps=read_image_stamps(in_bag))
         data = read_output_bag(output_bag, data)
     report, series = evaluate(data, args.pair_stride, args.pair_partners)
     report["input_bag"] = str(in_bag if not args.no_run else (args.input_bag or ""))
     report["output_bag"] = str(output_bag)
+    source = args.input_bag if args.no_run else in_bag
+    damage = input_damage(source) if source else None
+    if damage:
+        report["frames"]["unreadable_in_input"] = damage["unreadable_frames"]
+        report["input_damage"] = damage["damage"]
     if run_info:
         frames = report["frames"]["input"]
         report["performance"]["run_wall_s"] = run_info["wall_s"]
@@ -388,5 +413,9 @@ def run(args: argparse.Namespace) -> int:
     report["plots"] = plots
     path = write_json(report, out_dir / "report.json")
     print(format_table(report))
+    if damage:
+        lost = damage["unreadable_frames"]
+        count = "an unknown number of" if lost is None else str(lost)
+        print(f"input bag damaged: {count} frames unreadable, the rest evaluated ({damage['damage']})")
     print(f"wrote {path}" + (f" and {len(plots)} plots in {out_dir}" if plots else ""))
     return 0

@@ -35,6 +35,13 @@ def run(args: argparse.Namespace) -> int:
         if not topics:
             raise CliError(f"{args.bag}: none of the requested topics is in the bag")
         classes = {t.name: msg_class(t.msgtype) for t in topics}
+        if reader.damage:
+            unread = [reader.unread(t.name) for t in topics]
+            lost = "an unknown number" if None in unread else str(sum(n or 0 for n in unread))
+            print(
+                f"play: warning: {reader.damage}; playing the readable messages ({lost} lost)",
+                file=sys.stderr,
+            )
     return _play(args, classes)
 
 

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from ptz_selfcal.tools.bagio import BagError, BagWriter, msg_class
+from ptz_selfcal.tools.bagio import BagError, BagWriter, msg_class, qos_from_rclpy
 from ptz_selfcal.tools.cli import CliError
 
 
@@ -74,7 +74,9 @@ def _record(args: argparse.Namespace, writer: BagWriter, types: dict[str, str]) 
             if topic not in types:
                 node.get_logger().warning(f"{topic}: no publisher discovered, not recorded")
                 continue
-            writer.add_topic(topic, types[topic])
+            # Like rosbag2: the profiles the publishers offer, as discovered.
+            offered = [qos_from_rclpy(i.qos_profile) for i in node.get_publishers_info_by_topic(topic)]
+            writer.add_topic(topic, types[topic], offered)
             qos = QoSProfile(depth=1000, reliability=_reliability(node, topic))
 
             def on_message(raw: bytes, topic: str = topic) -> None:
