@@ -12,7 +12,8 @@ non-image topics (encoders, ground truth) copied unchanged; output messages get 
 input image with the same header stamp, so the output bag has one time base. With --deterministic the
 calibrator runs with inline_solves (each solve completes before the next frame) and frame_ingest only
 interpolates encoders between bracketing samples (encoder_max_hold 0, no extrapolation whose use depends
-on delivery order): the same bag gives the same output every run.
+on delivery order) and waits up to half of --timeout for them, so what each frame gets does not depend
+on delivery order or load.
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--deterministic",
         action="store_true",
-        help="each solve completes before the next frame, encoders only interpolated (same output every run)",
+        help="each solve completes before the next frame, encoders only interpolated (repeatable replays)",
     )
     parser.add_argument(
         "--quiet", action="store_true", help="no node output, no progress lines (summary only)"
@@ -220,8 +221,10 @@ def run(args: argparse.Namespace) -> int:
         }
         if args.deterministic:
             # A stamp just past the newest sample is otherwise extrapolated or interpolated depending on
-            # whether the next sample (sent before the image, on another topic) was delivered first.
+            # whether the next sample (sent before the image, on another topic) was delivered first; and
+            # a sample DDS re-sends late on a loaded machine must not expire the frame's wait.
             ingest_args["encoder_max_hold"] = 0.0
+            ingest_args["encoder_wait"] = max(1.0, 0.5 * args.timeout)
         tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
         # Lock-step results otherwise depend on when the worker's solves land relative to the frames.
         calibrator_args = {"inline_solves": "true"} if args.deterministic else {}
