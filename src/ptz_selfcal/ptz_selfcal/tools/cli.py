@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("ptz_selfcal.tools.run", "replay a bag through the real nodes and record every output"),
     "eval": ("ptz_selfcal.tools.evaluate", "run + compare with encoders and ground truth: report and plots"),
     "synth": ("ptz_selfcal.tools.synth", "render a PTZ camera bag from an equirectangular panorama"),
+    "mosaic": ("ptz_selfcal.tools.mosaic", "panoramic mosaic (PNG) of a bag through its calibration"),
 }
 
 

@@ -1,0 +1,273 @@
+"""`ptz-selfcal mosaic IN_BAG --out FILE.png [--projection spherical|cylindrical]` (paper section 8).
+
+IN_BAG is either an output bag of `ptz-selfcal run` (it holds ptz/selfcal/camera_info and
+ptz/selfcal/frame; the images come from the same bag or from --input-bag) or an input bag (images and
+encoders), which is first run through the real nodes (tools/run.py) into a temporary directory.
+Each frame is placed through its published K, plumb_bob D and orientation (mosaic/): frames whose
+orientation is the invalid zero quaternion, frames without a calibration and frames of another tracking
+reference than the largest one are skipped and counted. The mosaic is levelled with the encoders
+passed through in FrameCalibration when there are any (pan 0 at the centre, the horizon level);
+otherwise its frame is the calibration's reference. The width gives one mosaic pixel per image pixel
+at the longest focal length seen, capped by --max-width. The PNG is BGRA: alpha 0 where nothing was seen.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ptz_selfcal import topics
+from ptz_selfcal.camera.geometry import matrix_from_quaternion
+from ptz_selfcal.mosaic.blend import MosaicResult, build_mosaic
+from ptz_selfcal.mosaic.projection import KINDS, SPHERICAL
+from ptz_selfcal.mosaic.warp import FrameView
+from ptz_selfcal.sim import metrics
+from ptz_selfcal.tools.bagio import BagReader, deserialize, header_stamp_ns
+from ptz_selfcal.tools.cli import CliError
+from ptz_selfcal.tools.evaluate import BagData, read_image_stamps, read_output_bag, run_pipeline
+
+IMAGE_TOPICS = (topics.bag_topic(topics.IMAGE_COMPRESSED), topics.bag_topic(topics.IMAGE_RAW))
+_REDUCED = {
+    2: cv2.IMREAD_REDUCED_GRAYSCALE_2,
+    4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+    8: cv2.IMREAD_REDUCED_GRAYSCALE_8,
+}
+# Frames with more than this many images print progress lines.
+PROGRESS_MIN_FRAMES = 50
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("in_bag", help="an output bag of `ptz-selfcal run`, or an input bag (run first)")
+    parser.add_argument("--out", required=True, metavar="FILE.png", help="mosaic image to write (PNG)")
+    parser.add_argument("--projection", choices=KINDS, default=SPHERICAL, help="mosaic surface")
+    parser.add_argument("--max-width", type=int, default=8192, help="mosaic width cap (pixels, full turn)")
+    parser.add_argument("--input-bag", help="with an output bag without images: the bag that holds them")
+    parser.add_argument(
+        "--frame",
+        choices=("auto", "encoders", "reference"),
+        default="auto",
+        help="levelled by the encoders (auto: when present) or in the calibration's reference frame",
+    )
+    parser.add_argument("--no-exposure", action="store_true", help="no per-frame gain compensation")
+    parser.add_argument("--params", metavar="FILE", help="parameter YAML for the nodes (input bags)")
+    parser.add_argument("--deterministic", action="store_true", help="passed to run (input bags)")
+    parser.add_argument("--quiet", action="store_true", help="no node output and no progress lines")
+
+
+@dataclass
+class Frames:
+    """The frames that go into the mosaic, and why the others do not."""
+
+    stamps: list[int] = field(default_factory=list)
+    views: list[FrameView] = field(default_factory=list)
+    R_reference: list[np.ndarray] = field(default_factory=list)  # reference -> camera (as published)
+    encoders: list[tuple[float, float]] = field(default_factory=list)  # (pan, tilt) rad, nan if none
+    skipped: Counter = field(default_factory=Counter)
+
+
+def valid_quaternion(q: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(q)) and abs(float(np.linalg.norm(q)) - 1.0) < 1e-3)
+
+
+def collect_frames(data: BagData) -> Frames:
+    """Frames with a CameraInfo and a valid orientation, of the tracking reference with most frames."""
+    frames = Frames()
+    stamps = sorted(set(data.image_stamps) | set(data.camera_info) | set(data.frame_calibration))
+    candidates = []
+    for stamp in stamps:
+        info, fc = data.camera_info.get(stamp), data.frame_calibration.get(stamp)
+        if info is None or fc is None:
+            frames.skipped["no calibration"] += 1
+            continue
+        o = fc.orientation
+        q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+        if not valid_quaternion(q):
+            frames.skipped["invalid orientation"] += 1
+            continue
+        candidates.append((stamp, info, fc, q))
+    references = Counter(data.reference.get(s, 0) for s, *_ in candidates)
+    main_reference = references.most_common(1)[0][0] if references else 0
+    for stamp, info, fc, q in candidates:
+        if data.reference.get(stamp, 0) != main_reference:
+            frames.skipped["other reference"] += 1
+            continue
+        K = np.asarray(info.k, dtype=float).reshape(3, 3)
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+            frames.skipped["no calibration"] += 1
+            continue
+        d = [float(x) for x in info.d] + [0.0] * 5
+        R = matrix_from_quaternion(q)
+        frames.stamps.append(stamp)
+        frames.views.append(FrameView(K, (d[0], d[1], d[4]), R, int(info.width), int(info.height)))
+        frames.R_reference.append(R)
+        enc = fc.encoders
+        frames.encoders.append((float(enc.pan), float(enc.tilt)) if enc.valid else (np.nan, np.nan))
+    return frames
+
+
+def with_alignment(frames: Frames, A: np.ndarray) -> Frames:
+    """The same frames with world-to-camera rotations R_j A (A: world -> calibration reference)."""
+    views = [FrameView(v.K, v.D, R @ A, v.width, v.height) for v, R in zip(frames.views, frames.R_reference)]
+    return Frames(frames.stamps, views, frames.R_reference, frames.encoders, frames.skipped)
+
+
+def encoder_alignment(frames: Frames) -> np.ndarray | None:
+    """The rotation that levels the mosaic with the encoders' pan/tilt (None without 3 readings)."""
+    enc = np.asarray(frames.encoders, dtype=float).reshape(-1, 2)
+    ok = np.isfinite(enc).all(axis=1)
+    if ok.sum() < 3:
+        return None
+    R_enc = np.full((len(enc), 3, 3), np.nan)
+    R_enc[ok] = metrics.rotations_from_encoders(enc[ok, 0], enc[ok, 1])
+    return metrics.align_rotations(np.asarray(frames.R_reference), R_enc, ok)
+
+
+def decode_image(msgtype: str, raw: bytes, reduction: int) -> np.ndarray | None:
+    """BGR uint8 at full size (reduction 1) or grey at about 1/reduction size; None if undecodable."""
+    msg = deserialize(raw, msgtype)
+    if msgtype.endswith("CompressedImage"):
+        data = np.frombuffer(msg.data, np.uint8)
+        flag = _REDUCED.get(reduction, cv2.IMREAD_GRAYSCALE) if reduction > 1 else cv2.IMREAD_COLOR
+        image = cv2.imdecode(data, flag)
+        if image is not None and reduction > 1 and flag == cv2.IMREAD_GRAYSCALE:
+            image = cv2.resize(
+                image, None, fx=1.0 / reduction, fy=1.0 / reduction, interpolation=cv2.INTER_AREA
+            )
+        return image
+    h, w, enc = int(msg.height), int(msg.width), str(msg.encoding)
+    data = np.frombuffer(msg.data, np.uint8)
+    if enc in ("mono16", "16UC1"):
+        image = (data.view("<u2" if not msg.is_bigendian else ">u2").reshape(h, -1)[:, :w] >> 8).astype(
+            np.uint8
+        )
+    else:
+        channels = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3}.get(enc)
+        if channels is None:
+            return None
+        image = data.reshape(h, int(msg.step))[:, : w * channels].reshape(h, w, channels)
+        if enc == "rgb8":
+            image = image[:, :, ::-1]
+    image = np.ascontiguousarray(image.squeeze())
+    if reduction > 1:
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return cv2.resize(grey, (w // reduction, h // reduction), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image
+
+
+class BagFrameSource:
+    """mosaic.blend.FrameSource over the images of a bag, matched to the frames by header stamp."""
+
+    def __init__(self, image_bag: Path, frames: Frames) -> None:
+        self.image_bag, self.views = image_bag, frames.views
+        self._index = {stamp: i for i, stamp in enumerate(frames.stamps)}
+        self.decode_seconds = 0.0
+
+    def images(self, reduction: int) -> Iterator[tuple[int, np.ndarray]]:
+        with BagReader(self.image_bag) as reader:
+            names = [t.name for t in reader.topics() if t.name in IMAGE_TOPICS][:1]
+            seen = set()
+            for msg in reader.messages(names):
+                i = self._index.get(header_stamp_ns(msg.raw))
+                if i is None or i in seen:
+                    continue
+                start = time.perf_counter()
+                image = decode_image(msg.msgtype, msg.raw, reduction)
+                self.decode_seconds += time.perf_counter() - start
+                if image is not None:
+                    seen.add(i)
+                    yield i, image
+
+
+def image_topics(path: Path) -> list[str]:
+    with BagReader(path) as reader:
+        return [t.name for t in reader.topics() if t.name in IMAGE_TOPICS and t.count > 0]
+
+
+def is_output_bag(path: Path) -> bool:
+    with BagReader(path) as reader:
+        names = {t.name for t in reader.topics()}
+    return (
+        topics.bag_topic(topics.CAMERA_INFO) in names and topics.bag_topic(topics.FRAME_CALIBRATION) in names
+    )
+
+
+def progress_printer(total: int, quiet: bool) -> Any:
+    if quiet or total < PROGRESS_MIN_FRAMES:
+        return None
+    step = max(1, total // 10)
+
+    def report(stage: str, done: int, n: int) -> None:
+        if done % step == 0 or done == n:
+            print(f"mosaic: {stage} {done}/{n} frames", file=sys.stderr, flush=True)
+
+    return report
+
+
+def make_mosaic(
+    image_bag: Path,
+    frames: Frames,
+    kind: str = SPHERICAL,
+    max_width: int = 8192,
+    quiet: bool = True,
+    compensate: bool = True,
+) -> MosaicResult:
+    if not frames.views:
+        raise CliError("no frame has a calibration and a valid orientation: nothing to place")
+    source = BagFrameSource(image_bag, frames)
+    return build_mosaic(source, kind, max_width, progress_printer(len(frames.views), quiet), compensate)
+
+
+def _mosaic_from(output_bag: Path, image_bag: Path, args: argparse.Namespace) -> int:
+    if not image_topics(image_bag):
+        raise CliError(
+            f"{image_bag}: no images ({', '.join(IMAGE_TOPICS)}); pass the input bag with --input-bag"
+        )
+    data = BagData(image_stamps=read_image_stamps(image_bag)) if image_bag != output_bag else None
+    frames = collect_frames(read_output_bag(output_bag, data))
+    A = encoder_alignment(frames) if args.frame != "reference" else None
+    if args.frame == "encoders" and A is None:
+        raise CliError("--frame encoders: fewer than 3 frames carry encoder readings")
+    if A is not None:
+        frames = with_alignment(frames, A)
+    start = time.monotonic()
+    result = make_mosaic(image_bag, frames, args.projection, args.max_width, args.quiet, not args.no_exposure)
+    wall = time.monotonic() - start
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), result.image):
+        raise CliError(f"{out}: cannot write the image")
+    p = result.projection
+    skipped = ", ".join(f"{k} {v}" for k, v in sorted(frames.skipped.items())) or "none"
+    covered = float((result.image[:, :, 3] > 0).mean())
+    print(
+        f"mosaic: {result.frames} frames placed in {wall:.1f} s, skipped: {skipped}; "
+        f"{p.kind} {p.width}x{p.height}, {100 * covered:.1f} % covered, frame "
+        f"{'encoders' if A is not None else 'calibration reference'}; wrote {out}"
+    )
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    in_bag = Path(args.in_bag)
+    if Path(args.out).suffix.lower() != ".png":
+        raise CliError(f"{args.out}: the mosaic is written as PNG (name it .png)")
+    if args.max_width < 64:
+        raise CliError("--max-width must be at least 64")
+    if is_output_bag(in_bag):
+        image_bag = Path(args.input_bag) if args.input_bag else in_bag
+        return _mosaic_from(in_bag, image_bag, args)
+    with tempfile.TemporaryDirectory(prefix="ptz_selfcal_mosaic_") as tmp:
+        output_bag = Path(tmp) / "output_bag"
+        extra = ["--deterministic"] if args.deterministic else []
+        run_pipeline(in_bag, output_bag, args.params, args.quiet, extra)
+        return _mosaic_from(output_bag, in_bag, args)
