@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -117,3 +118,44 @@ def test_qos_profiles_are_recorded(output_bag: Path) -> None:
         assert [p["reliability"] for p in profiles[name]] == ["reliable"], profiles[name]
     with BagReader(output_bag) as reader:
         assert all(t.qos for t in reader.topics())
+
+
+def test_record_writes_the_offered_qos(tmp_path: Path, ros_env: dict[str, str]) -> None:
+    """A best-effort, transient-local publisher: `record` writes those profiles, not a default."""
+    import rclpy
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    topic = "/qos_probe/joint_states"
+    out = tmp_path / "recorded"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("qos_probe", context=context)
+        qos = QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.TRANSIENT_LOCAL
+        )
+        pub = node.create_publisher(JointState, topic, qos)
+        recorder = subprocess.Popen(
+            cli_command("record", str(out), "--topics", topic, "--max-messages", "5", "--idle-timeout", "30"),
+            env=ros_env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            deadline = time.monotonic() + 120
+            while recorder.poll() is None and time.monotonic() < deadline:
+                pub.publish(JointState(name=["pan"], position=[0.1]))
+                time.sleep(0.05)
+        finally:
+            if recorder.poll() is None:
+                recorder.kill()
+        assert recorder.wait(timeout=30) == 0, recorder.stderr.read()
+    finally:
+        context.try_shutdown()
+    info = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    (entry,) = info["topics_with_message_count"]
+    assert entry["message_count"] >= 5
+    offered = entry["topic_metadata"]["offered_qos_profiles"]
+    assert [(p["reliability"], p["durability"]) for p in offered] == [("best_effort", "transient_local")]

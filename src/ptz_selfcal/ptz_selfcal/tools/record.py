@@ -74,12 +74,12 @@ def _record(args: argparse.Namespace, writer: BagWriter, types: dict[str, str]) 
             if topic not in types:
                 node.get_logger().warning(f"{topic}: no publisher discovered, not recorded")
                 continue
-            # Like rosbag2: the profiles the publishers offer, as discovered.
-            offered = [qos_from_rclpy(i.qos_profile) for i in node.get_publishers_info_by_topic(topic)]
-            writer.add_topic(topic, types[topic], offered)
+            writer.add_topic(topic, types[topic], _offered(node, topic))
             qos = QoSProfile(depth=1000, reliability=_reliability(node, topic))
 
             def on_message(raw: bytes, topic: str = topic) -> None:
+                if not counts[topic]:  # publishers that appeared after the subscription count too
+                    writer.set_qos(topic, _offered(node, topic))
                 writer.write_raw(topic, node.get_clock().now().nanoseconds, raw)
                 counts[topic] += 1
                 last_message[0] = time.monotonic()
@@ -123,6 +123,11 @@ def _discover_types(node, topics: list[str], timeout: float) -> dict[str, str]:
             break
         rclpy.spin_once(node, timeout_sec=0.1)
     return found
+
+
+def _offered(node, topic: str) -> list:
+    """Like rosbag2: the QoS profiles the topic's publishers offer, as discovered."""
+    return [qos_from_rclpy(i.qos_profile) for i in node.get_publishers_info_by_topic(topic)]
 
 
 def _reliability(node, topic: str):
