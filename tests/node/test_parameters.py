@@ -1,0 +1,174 @@
+"""Parameter descriptors in real node processes: ranges and choices are what the parameter service
+reports, and it refuses an out-of-range value, keeping the old one (issue 17)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from conftest import NodeProcess, node_command
+
+ROS_DOMAIN_ID = 120
+NODES = {
+    "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
+    "homography_tracker": "ptz_selfcal.nodes.homography_tracker",
+    "calibrator": "ptz_selfcal.nodes.calibrator",
+}
+
+
+class ParamClient:
+    """Service clients of one remote node's parameter services."""
+
+    def __init__(self, node, executor, name: str) -> None:
+        from rcl_interfaces.srv import DescribeParameters, GetParameters, SetParameters
+
+        self.node = node
+        self.executor = executor
+        self.set = node.create_client(SetParameters, f"/{name}/set_parameters")
+        self.get = node.create_client(GetParameters, f"/{name}/get_parameters")
+        self.describe = node.create_client(DescribeParameters, f"/{name}/describe_parameters")
+
+    def wait(self, timeout: float) -> bool:
+        return all(c.wait_for_service(timeout_sec=timeout) for c in (self.set, self.get, self.describe))
+
+    def call(self, client, request, timeout: float = 20.0):
+        future = client.call_async(request)
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        assert future.done(), f"no answer from {client.srv_name}"
+        return future.result()
+
+    def set_value(self, name: str, value):
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        return self.call(self.set, request).results[0]
+
+    def value(self, name: str):
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+
+        return parameter_value_to_python(self.call(self.get, GetParameters.Request(names=[name])).values[0])
+
+    def descriptors(self, *names: str) -> dict:
+        from rcl_interfaces.srv import DescribeParameters
+
+        answer = self.call(self.describe, DescribeParameters.Request(names=list(names)))
+        return {d.name: d for d in answer.descriptors}
+
+
+@pytest.fixture(scope="module")
+def clients(tmp_path_factory: pytest.TempPathFactory):
+    """The three nodes, started once for the module (every test here only reads them, or sets a value
+    and checks it)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    env = {
+        **os.environ,
+        "ROS_DOMAIN_ID": str(ROS_DOMAIN_ID),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        "PYTHONUNBUFFERED": "1",
+    }
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    os.environ.update(ROS_DOMAIN_ID=env["ROS_DOMAIN_ID"], ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    logs = tmp_path_factory.mktemp("parameters")
+    procs = {name: NodeProcess(node_command(module), env, logs, name) for name, module in NODES.items()}
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("test_parameters", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        found = {name: ParamClient(node, executor, name) for name in NODES}
+        for name, client in found.items():
+            assert client.wait(60.0), procs[name].output()
+        yield found
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        for proc in procs.values():
+            proc.stop(timeout=10.0)
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def test_out_of_range_set_is_refused_and_the_old_value_stays(clients) -> None:
+    ingest = clients["frame_ingest"]
+    before = ingest.value("encoder_time_offset")
+    assert isinstance(before, float) and -60.0 <= before <= 60.0
+    refused = ingest.set_value("encoder_time_offset", 100.0)  # the range is [-60, 60] s
+    assert not refused.successful
+    assert "out of range" in refused.reason, refused.reason
+    assert ingest.value("encoder_time_offset") == before
+    # the same parameter in range is taken: the range, not a read-only flag, refused 100
+    accepted = ingest.set_value("encoder_time_offset", 0.25 if before != 0.25 else 0.5)
+    assert accepted.successful, accepted.reason
+    now = ingest.value("encoder_time_offset")
+    assert now in (0.25, 0.5) and now != before
+    nan = ingest.set_value("encoder_time_offset", float("nan"))
+    assert not nan.successful
+    assert ingest.value("encoder_time_offset") == now
+
+
+def test_describe_parameters_returns_ranges_and_choices(clients) -> None:
+    ingest = clients["frame_ingest"].descriptors("encoder_time_offset", "queue_depth", "input", "camera_name")
+    (offset,) = ingest["encoder_time_offset"].floating_point_range
+    assert (offset.from_value, offset.to_value) == (-60.0, 60.0)
+    (depth,) = ingest["queue_depth"].integer_range
+    assert (depth.from_value, depth.to_value) == (1, 1000)
+    assert "one of: raw, compressed, both" in ingest["input"].description
+    assert ingest["input"].additional_constraints == "one of: raw, compressed, both"
+    assert not ingest["camera_name"].floating_point_range and not ingest["camera_name"].integer_range
+
+    tracker = clients["homography_tracker"].descriptors("tracker.min_inlier_ratio", "tracker.max_features")
+    (ratio,) = tracker["tracker.min_inlier_ratio"].floating_point_range
+    assert (ratio.from_value, ratio.to_value) == (0.0, 1.0)
+    (features,) = tracker["tracker.max_features"].integer_range
+    assert features.from_value == 0 and features.to_value > 1_000_000
+
+    calibrator = clients["calibrator"].descriptors("nominal_hfov_deg", "max_keyframes", "stale_timeout")
+    for name in ("nominal_hfov_deg", "stale_timeout"):
+        (r,) = calibrator[name].floating_point_range
+        assert r.from_value < r.to_value, name
+    (keyframes,) = calibrator["max_keyframes"].integer_range
+    assert 0 < keyframes.from_value < keyframes.to_value
+
+
+def test_every_numeric_parameter_of_the_three_nodes_has_its_range(clients) -> None:
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import ListParameters
+
+    numeric = {
+        ParameterType.PARAMETER_DOUBLE: "floating_point_range",
+        ParameterType.PARAMETER_INTEGER: "integer_range",
+        ParameterType.PARAMETER_DOUBLE_ARRAY: "floating_point_range",
+        ParameterType.PARAMETER_INTEGER_ARRAY: "integer_range",
+    }
+    checked = 0
+    for name, client in clients.items():
+        lister = client.node.create_client(ListParameters, f"/{name}/list_parameters")
+        assert lister.wait_for_service(timeout_sec=30.0)
+        names = [
+            n
+            for n in client.call(lister, ListParameters.Request()).result.names
+            if not n.startswith("qos_overrides.") and n != "use_sim_time"  # rclpy's own
+        ]
+        for descriptor in client.descriptors(*names).values():
+            if descriptor.type in numeric:
+                assert getattr(descriptor, numeric[descriptor.type]), (name, descriptor.name)
+                checked += 1
+    assert checked >= 60
+
+
+def test_read_only_parameter_is_refused_and_kept(clients) -> None:
+    ingest = clients["frame_ingest"]
+    before = ingest.value("working_width")
+    refused = ingest.set_value("working_width", 320)
+    assert not refused.successful and "read-only" in refused.reason
+    assert ingest.value("working_width") == before
