@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import PANORAMAS, node_command
+from conftest import node_command
 
 from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 from ptz_selfcal.nodes.conversions import MSG_TO_STATUS
@@ -31,6 +31,10 @@ NODE_MODULES = {
     "calibrator": "ptz_selfcal.nodes.calibrator",
 }
 T0 = 1_700_000_000.0  # first stamp of every rendered sequence (s)
+REPO = Path(__file__).resolve().parents[2]
+SHIPPED_PARAMS = REPO / "src" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"
+SOURCE_PANORAMA = REPO / "bags" / "source" / "examplepano.jpg"  # shipped with the repository
+SHARED_PANORAMAS = REPO.parent / "shared" / "data" / "panoramas"  # beside the repository, optional
 
 
 def status_name(code: int) -> str:
@@ -40,13 +44,18 @@ def status_name(code: int) -> str:
 
 # ---------------------------------------------------------------------------------------------------------
 # rendered views
+def panorama_path(name: str) -> Path:
+    """The repository's own panorama by its name, any other from the shared data beside the repository."""
+    return SOURCE_PANORAMA if name == SOURCE_PANORAMA.name else SHARED_PANORAMAS / name
+
+
 @lru_cache(maxsize=2)
 def panorama(name: str = "building.jpg"):
     from ptz_selfcal.sim.render import build_panorama
 
-    path = PANORAMAS / name
+    path = panorama_path(name)
     if not path.exists():
-        pytest.skip(f"panorama {path} not available")
+        pytest.skip(f"panorama {path} not available (shared data is looked for beside the repository)")
     return build_panorama(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
 
 
@@ -104,23 +113,33 @@ def start_graph(
     ingest: Sequence[str] = (),
     tracker: Sequence[str] = (),
     calibrator: Sequence[str] = (),
-    working_width: int = 320,
+    working_width: int | None = None,
     only: Sequence[str] = ("frame_ingest", "homography_tracker", "calibrator"),
 ) -> dict[str, object]:
-    """The three nodes as separate processes (-p NAME:=VALUE overrides after the defaults)."""
+    """The three nodes as separate processes on the shipped parameter file, then -p NAME:=VALUE overrides:
+    diagnostics every 0.25 s (the harness waits on the nodes' counters), a reliable image subscription
+    (the feeder is lossless: a best-effort reader would let it lose frames) and the caller's."""
 
     def params(*values: str) -> list[str]:
         return [arg for v in values for arg in ("-p", v)]
 
+    width = () if working_width is None else (f"working_width:={working_width}",)
     extra = {
-        "frame_ingest": params(
-            f"working_width:={working_width}", "sensor_reliability:=reliable", "diagnostics_period:=0.25",
-            "encoder_wait:=0.3", *ingest,
-        ),
-        "homography_tracker": params("diagnostics_period:=0.25", *tracker),
-        "calibrator": params("diagnostics_period:=0.25", "nominal_hfov_deg:=55.0", *calibrator),
+        "frame_ingest": params("sensor_reliability:=reliable", *width, *ingest),
+        "homography_tracker": params(*tracker),
+        "calibrator": params(*calibrator),
+    }
+    return {
+        name: start_process(
+            node_command(
+                NODE_MODULES[name], "--params-file", str(SHIPPED_PARAMS), *params("diagnostics_period:=0.25"),
+                *extra[name],
+            ),
+            env,
+            name,
+        )
+        for name in only
     }  # fmt: skip
-    return {name: start_process(node_command(NODE_MODULES[name], *extra[name]), env, name) for name in only}
 
 
 def stamp_of(t: float):
@@ -362,8 +381,9 @@ class Sent:
 class LockStep:
     """Sends rendered views one at a time and waits for each one's CameraInfo (lossless graph)."""
 
-    def __init__(self, feeder: Feeder, width: int, height: int, fps: float = 30.0, timeout: float = 20.0):
-        self.feeder, self.width, self.height = feeder, width, height
+    def __init__(self, feeder: Feeder, width: int, height: int, fps: float = 30.0, timeout: float = 20.0,
+                 pano: str = "building.jpg") -> None:  # fmt: skip
+        self.feeder, self.width, self.height, self.pano = feeder, width, height, pano
         self.fps, self.timeout = fps, timeout
         self.k = 0
         self.log: list[Sent] = []
@@ -378,7 +398,7 @@ class LockStep:
         """Send one frame; None when its CameraInfo did not come within timeout (the frame is lost)."""
         t = T0 + self.k / self.fps
         self.k += 1
-        image = render(view, self.width, self.height) if image is None else image
+        image = render(view, self.width, self.height, self.pano) if image is None else image
         ns = self.feeder.send_view(t, view, image)
         if not self.feeder.wait_info(ns, timeout):
             self.lost.append(ns)
@@ -429,23 +449,24 @@ def motion_blur(image: np.ndarray, length: int) -> np.ndarray:
 def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int = 100, window: int = 16,
                            bad: int = 8, zoom_max: float = 2.0,
                            disturbances: Sequence[str] = ("black", "blur", "scene_cut", "preset_90deg"),
-                           ) -> dict[str, dict]:  # fmt: skip
+                           pano: str = SOURCE_PANORAMA.name) -> dict[str, dict]:  # fmt: skip
     """Warm-up sweep (1x..zoom_max, the zoom model learns that range), zoom in to full zoom, then for each
     disturbance: a window of views at full zoom, the disturbance, the same window again. Returns per
-    disturbance: frames, statuses and focal errors during it, errors on the window before and after,
+    disturbance: frames, statuses and focal errors during it, errors on the window before and after
+    (median; and the largest after),
     frames until the calibration came back (recovery) and its wall time. "none" is the undisturbed
     control (the window again, nothing in between: any change is drift over repeated passes); repeated
     names get keys name, name_2, ..."""
     fw = f_wide_for(width)
     fmax = zoom_max * fw
-    ls = LockStep(feeder, width, height)
+    ls = LockStep(feeder, width, height, pano=pano)
     for v in sweep(warmup, width, fw, zoom_max=zoom_max):
         ls.send(v, None, "warmup")
     for i in range(1, 21):
         f = fw + (fmax - fw) * i / 20
         ls.send(View(0.0, 0.0, f, zoom_of(f, fw)), None, "zoom_in")
     views = window_views(width, fmax, window)
-    images = [render(v, width, height) for v in views]
+    images = [render(v, width, height, pano) for v in views]
     last, last_image = views[-1], images[-1]
     results: dict[str, dict] = {}
 
@@ -463,8 +484,8 @@ def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int 
         elif name == "blur":
             blurred = cv2.GaussianBlur(last_image, (0, 0), 12)
             lost = [ls.send(last, blurred, name) for _ in range(bad)]
-        elif name == "scene_cut":
-            other = render(last, width, height, "field.jpg")
+        elif name == "scene_cut":  # the scene half a turn away, which the tracker has never seen
+            other = render(View(last.pan + math.pi, last.tilt, last.f, last.zoom), width, height, pano)
             lost = [ls.send(last, other, name) for _ in range(bad)]
         elif name == "preset_90deg":  # 90 degrees of pan in `bad` frames at full zoom, hold, and back
             step = 90.0 / bad
@@ -473,11 +494,11 @@ def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int 
                 View(last.pan + math.radians(step * i), last.tilt, fmax, last.zoom) for i in range(1, bad + 1)
             ]
             for v in path:
-                lost.append(ls.send(v, motion_blur(render(v, width, height), blur_px), name))
+                lost.append(ls.send(v, motion_blur(render(v, width, height, pano), blur_px), name))
             for _ in range(bad):
                 lost.append(ls.send(path[-1], None, name + "_hold"))
             for v in reversed([last, *path[:-1]]):
-                lost.append(ls.send(v, motion_blur(render(v, width, height), blur_px), name))
+                lost.append(ls.send(v, motion_blur(render(v, width, height, pano), blur_px), name))
         else:
             raise ValueError(f"unknown disturbance {name!r}")
         t_back = time.monotonic()
@@ -497,6 +518,7 @@ def tracking_loss_scenario(feeder: Feeder, width: int, height: int, warmup: int 
             "errors": [ls.error(s) for s in lost],
             "before": float(np.median([ls.error(s) for s in before])),
             "after": float(np.median([ls.error(s) for s in good_after])) if good_after else math.nan,
+            "after_max": max((ls.error(s) for s in good_after), default=math.nan),
             "after_statuses": [ls.status(s) for s in after],
             "recovery_frames": recovered,
             "recovery_s": recover_s,
@@ -872,6 +894,8 @@ def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: s
         "worse": worse,
         "statuses": [ls.status(s) for s in after],
         "threshold": threshold,
+        "before_max": max(ls.error(s) for s in before),
+        "after_errors": [ls.error(s) for s in after],
         "before": float(np.median([ls.error(s) for s in before])),
         "after": float(np.median([ls.error(s) for s in after])),
         "recover_s": recover_s,
@@ -891,16 +915,17 @@ def endpoints_of(feeder: Feeder, node_name: str) -> set[bytes]:
     return gids
 
 
-def zoom_preset_scenario(feeder: Feeder, width: int, height: int, warmup: int = 100) -> dict:
+def zoom_preset_scenario(feeder: Feeder, width: int, height: int, warmup: int = 100,
+                         pano: str = SOURCE_PANORAMA.name) -> dict:  # fmt: skip
     """A preset recall that zooms past the learned range while panning: warm-up sweep (1x..1.6x), the
     window of views at the sweep's end (wide), then 10 sharp frames panning 9 deg/frame while zooming to
     2.5x, 5 frames held there, 10 frames back (pan and zoom) to the window, and the window again."""
     fw = f_wide_for(width)
-    ls = LockStep(feeder, width, height)
+    ls = LockStep(feeder, width, height, pano=pano)
     for v in sweep(warmup, width, fw, zoom_max=1.6):
         ls.send(v, None, "warmup")
     views = window_views(width, fw)
-    images = [render(v, width, height) for v in views]
+    images = [render(v, width, height, pano) for v in views]
     assert ls.until_calibrated(views, images), "the calibration did not converge during the warm-up"
     before = [ls.send(v, im, "window") for v, im in zip(views, images)]
     last, fmax = views[-1], 2.5 * fw
@@ -922,6 +947,7 @@ def zoom_preset_scenario(feeder: Feeder, width: int, height: int, warmup: int = 
     return {
         "before": float(np.median([ls.error(s) for s in before])),
         "after": float(np.median([ls.error(s) for s in after[len(views) :]])),
+        "after_max": max(ls.error(s) for s in after[len(views) :]),
         "after_statuses": [ls.status(s) for s in after],
         "moving_statuses": [ls.status(s) for s in moving],
         "moving_errors": [ls.error(s) for s in moving],
