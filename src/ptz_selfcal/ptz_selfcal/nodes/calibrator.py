@@ -101,6 +101,9 @@ class CalibratorNode(Node):
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        # matches first: when both are waiting, the executor takes a keyframe's matches before the next
+        # frame's homography (inline_solves then solves with them, whatever the arrival order)
+        self.create_subscription(KeyframeMatches, topics.KEYFRAMES, self._on_keyframe_matches, reliable_qos())
         # KEEP_ALL: every homography gets its CameraInfo (small messages; the tracker's queue is the bounded
         # one); the standard overrides let a deployment bound it
         self.create_subscription(
@@ -110,7 +113,6 @@ class CalibratorNode(Node):
             reliable_qos(),
             qos_overriding_options=qos_overrides(),
         )
-        self.create_subscription(KeyframeMatches, topics.KEYFRAMES, self._on_keyframe_matches, reliable_qos())
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self._runner.start(inline=p["inline_solves"])
         self.get_logger().info(

@@ -117,14 +117,15 @@ class KeyframeCalibration:
             if calibrator.last_solve is not before:
                 solved = True
                 self._solved(time.perf_counter() - start, first=not was_calibrated)
-            if time.perf_counter() - start > max_seconds:
+            if work.paced and time.perf_counter() - start > max_seconds:
                 break  # the rest waits for the next batch
         remaining = max_seconds - (time.perf_counter() - start)
         if added:
             self._needs_refinement = True
-        due = not work.paced or time.monotonic() >= self._next_solve
-        if calibrator.calibrated and self._needs_refinement and remaining > 0.0 and not solved and due:
-            solved = self._reoptimise(remaining)
+        # unpaced (replays): no clock in what is solved, so the same inputs give the same calibration
+        due = not work.paced or (time.monotonic() >= self._next_solve and remaining > 0.0)
+        if calibrator.calibrated and self._needs_refinement and not solved and due:
+            solved = self._reoptimise(remaining if work.paced else None)
         if added:  # bounded memory: forget keyframes the calibrator dropped
             live = {int(kf.keyframe_id) for kf in calibrator.keyframes}
             if self.solver.reference_keyframe_id is not None:
@@ -135,9 +136,10 @@ class KeyframeCalibration:
             self.solver.rotations = {k: v for k, v in self.solver.rotations.items() if k in live}
         return solved, added
 
-    def _reoptimise(self, budget: float) -> bool:
-        """One bounded re-optimisation; then the next waits so that solves take at most
-        max_solve_duty of a core (they share the cores with the tracker)."""
+    def _reoptimise(self, budget: float | None) -> bool:
+        """One re-optimisation within budget seconds (None: the evaluation count alone bounds it); then
+        the next waits so that solves take at most max_solve_duty of a core (they share the cores with
+        the tracker)."""
         calibrator = self.calibrator
         assert calibrator is not None
         before = calibrator.last_solve
