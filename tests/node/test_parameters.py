@@ -172,3 +172,45 @@ def test_read_only_parameter_is_refused_and_kept(clients) -> None:
     refused = ingest.set_value("working_width", 320)
     assert not refused.successful and "read-only" in refused.reason
     assert ingest.value("working_width") == before
+
+
+@pytest.mark.parametrize(
+    ("module", "cls", "topic"),
+    [
+        ("ptz_selfcal.nodes.frame_ingest", "FrameIngest", "image_raw"),
+        ("ptz_selfcal.nodes.homography_tracker", "HomographyTrackerNode", "frame_in"),
+    ],
+)
+def test_the_live_queue_is_bounded_keep_last_by_default(module: str, cls: str, topic: str) -> None:
+    """The image queue by default, lossless (replays) and an rclpy QoS override, as created by the node
+    (history and depth are not in the graph's endpoint information, so the node is built here)."""
+    import importlib
+
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rclpy.qos import HistoryPolicy
+
+    node_class = getattr(importlib.import_module(module), cls)
+
+    def queue(*overrides: Parameter):
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=ROS_DOMAIN_ID + 2)  # its own domain: nothing connects to it
+        try:
+            node = node_class(context=context, parameter_overrides=list(overrides))
+            try:
+                (sub,) = [s for s in node.subscriptions if s.topic_name.endswith(f"/{topic}")]
+                return sub.topic_name, sub.qos_profile.history, sub.qos_profile.depth
+            finally:
+                node.destroy_node()
+        finally:
+            rclpy.shutdown(context=context)
+
+    name, history, depth = queue()
+    assert (history, depth) == (HistoryPolicy.KEEP_LAST, 50)
+    _, history, _ = queue(Parameter("queue_policy", value="lossless"))
+    assert history == HistoryPolicy.KEEP_ALL
+    _, history, depth = queue(Parameter("queue_depth", value=3))
+    assert (history, depth) == (HistoryPolicy.KEEP_LAST, 3)
+    # rclpy's standard override of the same queue
+    _, history, depth = queue(Parameter(f"qos_overrides.{name}.subscription.depth", value=7))
+    assert (history, depth) == (HistoryPolicy.KEEP_LAST, 7)
