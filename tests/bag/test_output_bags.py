@@ -116,6 +116,10 @@ def test_qos_profiles_are_recorded(output_bag: Path) -> None:
         assert all(p["reliability"] in ("reliable", "best_effort") for p in offered), (name, offered)
     for name in PER_IMAGE:  # what the nodes offer in run mode
         assert [p["reliability"] for p in profiles[name]] == ["reliable"], profiles[name]
+    # Outputs carry their publishers' profiles as discovered (DDS discovery carries no history), not
+    # the fallback a topic without known publishers gets: diagnostics arrive while the nodes come up.
+    for name in [*PER_IMAGE, topics.bag_topic(topics.DIAGNOSTICS)]:
+        assert profiles[name] and all(p["history"] == "unknown" for p in profiles[name]), profiles[name]
     with BagReader(output_bag) as reader:
         assert all(t.qos for t in reader.topics())
 

@@ -318,6 +318,8 @@ class _Replay:
         # output bag's timeline is the input's (run() sets the input's start before the first image).
         self.last_bag_time = 0
         self.bag_qos: dict[str, tuple] = {}  # input topic -> its recorded QoS profiles
+        self.qos_recorded: set[str] = set()  # output topics whose publishers' QoS is set
+        self.node: Any = None
         self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
         self.encoder_topic: str | None = topics.bag_topic(topics.JOINT_STATES)
         self._lost_logged = 0
@@ -343,6 +345,7 @@ class _Replay:
             self.stamp_times.get(stamp, self.last_bag_time) if stamp is not None else self.last_bag_time
         )
         name = topics.bag_topic(topic)
+        self._record_qos(topic)
         self.writer.write_raw(name, bag_time, raw)
         self.stats.recorded[name] = self.stats.recorded.get(name, 0) + 1
         if topic == topics.HOMOGRAPHY and stamp is not None:
@@ -390,6 +393,7 @@ class _Replay:
         context = rclpy.Context()
         rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
         node = rclpy.create_node("ptz_selfcal_run_player", namespace=self.namespace, context=context)
+        self.node = node
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         interrupted = threading.Event()
@@ -424,7 +428,6 @@ class _Replay:
                 )
             self.supervisor.start()
             self._wait_ready(node, executor, image_pub, encoder_pub)
-            self._record_qos(node)
             self.stats.started = time.monotonic()
             self._lockstep(executor, image_pub, encoder_pub)
             self._drain(executor)
@@ -442,12 +445,15 @@ class _Replay:
             raise KeyboardInterrupt
         return self.stats
 
-    def _record_qos(self, node: Any) -> None:
-        """The output topics' QoS as their publishers offer it, recorded like rosbag2 does."""
-        for topic in self.output_topics:
-            name = f"{self.namespace}{topic}" if topic.startswith("/") else f"{self.namespace}/{topic}"
-            infos = node.get_publishers_info_by_topic(name)
-            self.writer.set_qos(topics.bag_topic(topic), [qos_from_rclpy(i.qos_profile) for i in infos])
+    def _record_qos(self, topic: str) -> None:
+        """An output topic's QoS as its publishers offer it, recorded like rosbag2 does (before its first
+        message: diagnostics arrive while the nodes come up)."""
+        if topic in self.qos_recorded or self.node is None:
+            return
+        self.qos_recorded.add(topic)
+        name = f"{self.namespace}{topic}" if topic.startswith("/") else f"{self.namespace}/{topic}"
+        infos = self.node.get_publishers_info_by_topic(name)
+        self.writer.set_qos(topics.bag_topic(topic), [qos_from_rclpy(i.qos_profile) for i in infos])
 
     def _check_supervisor(self) -> None:
         self.supervisor.poll()
