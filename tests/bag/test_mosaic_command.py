@@ -1,0 +1,132 @@
+"""`ptz-selfcal mosaic` end to end: a short synthetic bag -> run (real nodes over DDS) -> PNG mosaic.
+
+The mosaic must be the size its longest published focal length asks for (or the cap), 2:1 when
+spherical, and cover what the camera saw: the footprints of the ground-truth views (K and pan/tilt of
+synth), since the command levels the mosaic with the encoders.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import cli_command, make_synth_bag
+
+from ptz_selfcal.camera.geometry import ptz_rotation
+from ptz_selfcal.mosaic.blend import Accumulator
+from ptz_selfcal.mosaic.projection import Projection, mosaic_width
+from ptz_selfcal.mosaic.warp import Box, FrameView, footprint, footprint_box, warp_frame
+from ptz_selfcal.tools import evaluate
+
+ROS_DOMAIN_ID = 197
+FRAMES, WIDTH, HEIGHT = 30, 320, 180
+SYNTH = ("--pan-amplitude", "25", "--tilt-amplitude", "5", "--zoom-max", "1.5", "--seed", "5")
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(ROS_DOMAIN_ID))
+    return env
+
+
+def _cli(*args: str, timeout: float = 240.0) -> subprocess.CompletedProcess:
+    return subprocess.run(cli_command(*args), env=_env(), capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(input bag, output bag of `ptz-selfcal run`)."""
+    root = tmp_path_factory.mktemp("mosaic")
+    in_bag = make_synth_bag(root / "in", FRAMES, WIDTH, HEIGHT, *SYNTH)
+    out_bag = root / "out"
+    proc = _cli("run", str(in_bag), "--out", str(out_bag), "--quiet", "--deterministic")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return in_bag, out_bag
+
+
+def _truth_coverage(out_bag: Path, projection: Projection) -> np.ndarray:
+    """Where the ground-truth views (synth's K, pan and tilt) land on a mosaic surface."""
+    data = evaluate.read_output_bag(out_bag)
+    acc = Accumulator(projection, Box(0, projection.width, 0, projection.height), 1)
+    for stamp, info in sorted(data.gt_camera_info.items()):
+        js = data.gt_joint_states[stamp]
+        pan, tilt = (js.position[list(js.name).index(n)] for n in ("pan", "tilt"))
+        K = np.asarray(info.k, dtype=float).reshape(3, 3)
+        view = FrameView(K, (0.0, 0.0, 0.0), ptz_rotation(pan, tilt), WIDTH, HEIGHT)
+        box = footprint_box(footprint(view), projection)
+        acc.add(warp_frame(np.ones((HEIGHT, WIDTH), np.float32), view, projection, box))
+    assert len(data.gt_camera_info) == FRAMES
+    return acc.image()[:, :, 3] > 0
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+def _placed(stdout: str) -> int:
+    match = re.search(r"mosaic: (\d+) frames placed", stdout)
+    assert match, stdout
+    return int(match.group(1))
+
+
+def test_mosaic_of_an_output_bag(bags: tuple[Path, Path], tmp_path: Path) -> None:
+    in_bag, out_bag = bags
+    out = tmp_path / "pano.png"
+    proc = _cli("mosaic", str(out_bag), "--input-bag", str(in_bag), "--out", str(out), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = evaluate.read_output_bag(out_bag)
+    valid = {
+        stamp
+        for stamp, f in data.frame_calibration.items()
+        if np.any([f.orientation.x, f.orientation.y, f.orientation.z, f.orientation.w])
+    }
+    invalid = FRAMES - len(valid)
+    assert _placed(proc.stdout) == FRAMES - invalid
+    assert (f"invalid orientation {invalid}" in proc.stdout) == (invalid > 0), proc.stdout
+    # one mosaic pixel per image pixel at the longest focal length of the frames placed
+    f_max = max(float(info.k[0]) for stamp, info in data.camera_info.items() if stamp in valid)
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.shape == (mosaic_width(f_max, 8192) // 2, mosaic_width(f_max, 8192), 4)
+    covered = image[:, :, 3] > 0
+    truth = _truth_coverage(out_bag, Projection.spherical(image.shape[1]))
+    assert truth.shape == covered.shape
+    assert _iou(covered, truth) > 0.9
+    # the pixels hold the scene: not a constant, no black holes inside the covered region
+    inner = cv2.erode(covered.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    assert image[:, :, :3][inner].std() > 20 and (image[:, :, :3][inner].max(axis=1) > 0).all()
+
+
+def test_cylindrical_mosaic_covers_the_same_longitudes(bags: tuple[Path, Path], tmp_path: Path) -> None:
+    in_bag, out_bag = bags
+    out = tmp_path / "cyl.png"
+    args = ("--input-bag", str(in_bag), "--out", str(out), "--projection", "cylindrical", "--quiet")
+    proc = _cli("mosaic", str(out_bag), *args, "--max-width", "1500")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.shape[1] == 1500 and image.shape[0] < 750
+    covered = image[:, :, 3] > 0
+    # the cylinder's rows span the latitudes seen: about the truth's, through the same tan(lat) law
+    truth = _truth_coverage(out_bag, Projection.spherical(1500))
+    lat = (0.5 - (np.nonzero(truth.any(axis=1))[0][[0, -1]] + 0.5) / 750) * math.pi
+    expected_rows = 1500 / (2 * math.pi) * (math.tan(lat[0]) - math.tan(lat[1]))
+    assert abs(image.shape[0] - expected_rows) < 0.1 * expected_rows
+    assert _iou(covered.any(axis=0), truth.any(axis=0)) > 0.9  # the same longitudes
+    assert covered[0].any() and covered[-1].any()  # rows from the highest to the lowest view
+
+
+def test_mosaic_of_an_input_bag_runs_the_nodes(bags: tuple[Path, Path], tmp_path: Path) -> None:
+    in_bag, out_bag = bags
+    out = tmp_path / "capped.png"
+    proc = _cli("mosaic", str(in_bag), "--out", str(out), "--max-width", "1024", "--quiet", "--deterministic")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert _placed(proc.stdout) > FRAMES // 2
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.shape == (512, 1024, 4)  # 2 pi f is far above the cap
+    assert _iou(image[:, :, 3] > 0, _truth_coverage(out_bag, Projection.spherical(1024))) > 0.9
+    assert math.isclose(image.shape[1] / image.shape[0], 2.0)
