@@ -65,11 +65,19 @@ LEASE_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
 
 
 def default_params_file() -> Path:
-    """config/ptz_selfcal.yaml: from the source tree, else from the installed share directory."""
-    here = Path(__file__).resolve().parents[2] / "config" / "ptz_selfcal.yaml"
-    if here.exists():
-        return here
-    return Path(sys.prefix) / "share" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"
+    """config/ptz_selfcal.yaml: from the package's share directory in the ament index (a colcon or other
+    ament install, wherever its prefix is), else from the source tree (a development checkout), else
+    from this Python's prefix (a pip install puts the share files there)."""
+    source = Path(__file__).resolve().parents[2] / "config" / "ptz_selfcal.yaml"
+    candidates = [source, Path(sys.prefix) / "share" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        share = Path(get_package_share_directory("ptz_selfcal"))
+        candidates.insert(0, share / "config" / "ptz_selfcal.yaml")
+    except (ImportError, LookupError, OSError):  # not installed with ament, or no AMENT_PREFIX_PATH
+        pass
+    return next((path for path in candidates if path.exists()), source)
 
 
 # ---------------------------------------------------------------------------------------------------------
