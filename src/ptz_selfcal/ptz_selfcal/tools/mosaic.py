@@ -31,7 +31,9 @@ from ptz_selfcal.camera.geometry import matrix_from_quaternion
 from ptz_selfcal.mosaic.blend import MosaicResult, build_mosaic
 from ptz_selfcal.mosaic.projection import KINDS, SPHERICAL
 from ptz_selfcal.mosaic.warp import FrameView
+from ptz_selfcal.nodes.conversions import STATUS_TO_MSG
 from ptz_selfcal.sim import metrics
+from ptz_selfcal.status import CALIBRATED
 from ptz_selfcal.tools.bagio import BagReader, deserialize, header_stamp_ns
 from ptz_selfcal.tools.cli import CliError
 from ptz_selfcal.tools.evaluate import BagData, read_image_stamps, read_output_bag, run_pipeline
@@ -42,6 +44,8 @@ _REDUCED = {
     4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
     8: cv2.IMREAD_REDUCED_GRAYSCALE_8,
 }
+# FrameCalibration.status values of a calibrated K
+CALIBRATED_STATUS = frozenset(STATUS_TO_MSG[s] for s in CALIBRATED)
 # Frames with more than this many images print progress lines.
 PROGRESS_MIN_FRAMES = 50
 
@@ -57,6 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("auto", "encoders", "reference"),
         default="auto",
         help="levelled by the encoders (auto: when present) or in the calibration's reference frame",
+    )
+    parser.add_argument(
+        "--calibrated-only",
+        action="store_true",
+        help="skip the frames published before the first solve (with the prior's K)",
     )
     parser.add_argument("--no-exposure", action="store_true", help="no per-frame gain compensation")
     parser.add_argument("--params", metavar="FILE", help="parameter YAML for the nodes (input bags)")
@@ -79,8 +88,9 @@ def valid_quaternion(q: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(q)) and abs(float(np.linalg.norm(q)) - 1.0) < 1e-3)
 
 
-def collect_frames(data: BagData) -> Frames:
-    """Frames with a CameraInfo and a valid orientation, of the tracking reference with most frames."""
+def collect_frames(data: BagData, calibrated_only: bool = False) -> Frames:
+    """Frames with a CameraInfo and a valid orientation, of the tracking reference with most frames
+    (calibrated_only: and a calibrated status, not the prior's K of the frames before the first solve)."""
     frames = Frames()
     stamps = sorted(set(data.image_stamps) | set(data.camera_info) | set(data.frame_calibration))
     candidates = []
@@ -93,6 +103,9 @@ def collect_frames(data: BagData) -> Frames:
         q = np.array([o.x, o.y, o.z, o.w], dtype=float)
         if not valid_quaternion(q):
             frames.skipped["invalid orientation"] += 1
+            continue
+        if calibrated_only and int(fc.status) not in CALIBRATED_STATUS:
+            frames.skipped["not calibrated"] += 1
             continue
         candidates.append((stamp, info, fc, q))
     references = Counter(data.reference.get(s, 0) for s, *_ in candidates)
@@ -233,7 +246,7 @@ def _mosaic_from(output_bag: Path, image_bag: Path, args: argparse.Namespace) ->
             f"{image_bag}: no images ({', '.join(IMAGE_TOPICS)}); pass the input bag with --input-bag"
         )
     data = BagData(image_stamps=read_image_stamps(image_bag)) if image_bag != output_bag else None
-    frames = collect_frames(read_output_bag(output_bag, data))
+    frames = collect_frames(read_output_bag(output_bag, data), args.calibrated_only)
     A = encoder_alignment(frames) if args.frame != "reference" else None
     if args.frame == "encoders" and A is None:
         raise CliError("--frame encoders: fewer than 3 frames carry encoder readings")
