@@ -75,7 +75,7 @@ class Box:
 
 @dataclass(frozen=True)
 class Warped:
-    """A frame resampled on its box: (h, w, C) float32 pixels and (h, w) float32 feather weights."""
+    """A frame resampled on its box: (h, w, C) pixels (the image's dtype) and (h, w) float32 weights."""
 
     box: Box
     pixels: np.ndarray
@@ -159,41 +159,40 @@ def warp_frame(image: np.ndarray, view: FrameView, projection: Projection, box: 
     lat = projection.lat_of_y(np.arange(box.y0, box.y1))
     sin_lon, cos_lon = np.sin(lon).astype(np.float32), np.cos(lon).astype(np.float32)
     sin_lat, cos_lat = np.sin(lat).astype(np.float32), np.cos(lat).astype(np.float32)
-    R = np.asarray(view.R, dtype=float)
-    # camera ray c = R d with d = (cos lat sin lon, -sin lat, cos lat cos lon): separable in (lat, lon)
+    # without distortion K R d is projected directly (u = p0 / p2), with it R d is distorted first
+    M = np.asarray(view.R, dtype=float) if view.distorted else K @ np.asarray(view.R, dtype=float)
+    # M d with d = (cos lat sin lon, -sin lat, cos lat cos lon): separable in (lat, lon)
     c = [
-        cos_lat[:, None] * np.float32(R[i, 0]) * sin_lon[None, :]
-        + cos_lat[:, None] * np.float32(R[i, 2]) * cos_lon[None, :]
-        - (np.float32(R[i, 1]) * sin_lat)[:, None]
+        cos_lat[:, None] * (np.float32(M[i, 0]) * sin_lon + np.float32(M[i, 2]) * cos_lon)[None, :]
+        - (np.float32(M[i, 1]) * sin_lat)[:, None]
         for i in range(3)
     ]
-    front = c[2] > np.float32(1e-6)
-    inv_z = np.float32(1.0) / np.where(front, c[2], np.float32(1.0))
-    xn, yn = c[0] * inv_z, c[1] * inv_z
-    if view.distorted:
-        r2 = xn * xn + yn * yn
-        x1, y1 = w_img - 0.5, h_img - 0.5
-        corners = np.array([[-0.5, -0.5], [x1, y1], [-0.5, y1], [x1, -0.5]])
-        cn = (corners - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
-        front &= r2 <= np.float32(_RADIUS2_MARGIN * float((cn**2).sum(axis=1).max()))
-        ux = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
-        und = np.column_stack([ux.ravel(), (K[1, 1] * yn + K[1, 2]).ravel()])
-        dist = plumb_bob_distort(und, view.D[0], view.D[1], K, view.D[2])
-        u = dist[:, 0].reshape(xn.shape).astype(np.float32)
-        v = dist[:, 1].reshape(xn.shape).astype(np.float32)
-    else:
-        u = np.float32(K[0, 0]) * xn + np.float32(K[0, 1]) * yn + np.float32(K[0, 2])
-        v = np.float32(K[1, 1]) * yn + np.float32(K[1, 2])
+    front = c[2] > np.float32(1e-6 * abs(M[2]).max())
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv_z = np.float32(1.0) / c[2]
+        if view.distorted:
+            xn, yn = c[0] * inv_z, c[1] * inv_z
+            r2 = xn * xn + yn * yn
+            x1, y1 = w_img - 0.5, h_img - 0.5
+            corners = np.array([[-0.5, -0.5], [x1, y1], [-0.5, y1], [x1, -0.5]])
+            cn = (corners - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+            front &= r2 <= np.float32(_RADIUS2_MARGIN * float((cn**2).sum(axis=1).max()))
+            xn[~front], yn[~front] = 0.0, 0.0
+            ux = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
+            und = np.column_stack([ux.ravel(), (K[1, 1] * yn + K[1, 2]).ravel()])
+            dist = plumb_bob_distort(und, view.D[0], view.D[1], K, view.D[2])
+            u = dist[:, 0].reshape(xn.shape).astype(np.float32)
+            v = dist[:, 1].reshape(xn.shape).astype(np.float32)
+        else:
+            u, v = c[0] * inv_z, c[1] * inv_z
+    far = ~front
+    u[far], v[far] = -1e4, -1e4
     # distance to the image border, in pixels: the feather weight's ramp
-    edge = np.minimum(
-        np.minimum(u + np.float32(0.5), np.float32(w_img - 0.5) - u),
-        np.minimum(v + np.float32(0.5), np.float32(h_img - 0.5) - v),
-    )
-    ramp = np.float32(max(1.0, 0.5 * min(w_img, h_img)))
-    weight = np.where(front, np.clip(edge / ramp, 0.0, 1.0), np.float32(0.0)).astype(np.float32)
-    u = np.where(front, u, np.float32(-1e4))
-    v = np.where(front, v, np.float32(-1e4))
+    weight = np.minimum(u, np.float32(w_img - 1.0) - u)
+    np.minimum(weight, v, out=weight)
+    np.minimum(weight, np.float32(h_img - 1.0) - v, out=weight)
+    weight += np.float32(0.5)
+    weight *= np.float32(1.0 / max(1.0, 0.5 * min(w_img, h_img)))
+    np.clip(weight, 0.0, 1.0, out=weight)
     pixels = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    if pixels.ndim == 2:
-        pixels = pixels[:, :, None]
-    return Warped(box, pixels.astype(np.float32), weight)
+    return Warped(box, pixels[:, :, None] if pixels.ndim == 2 else pixels, weight)
