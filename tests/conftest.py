@@ -217,6 +217,18 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def shared_data_file(relative: str) -> Path:
+    """A file of the shared data for code that is not a test's fixture (a harness, a cached loader): the
+    running test is listed among the shared-data users, and skipped (counted) when the file is absent."""
+    current = os.environ.get("PYTEST_CURRENT_TEST", "").rsplit(" ", 1)[0]
+    if current and current not in _shared_data_users:
+        _shared_data_users.append(current)
+    path = SHARED_DATA / relative
+    if not path.exists():
+        pytest.skip(f"shared data file {path} absent")
+    return path
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """PTZ_TEST_SEED: shuffle the modules, and the tests within each (module fixtures stay built once)."""
     seed = os.environ.get("PTZ_TEST_SEED")
@@ -239,7 +251,7 @@ def pytest_report_header(config: pytest.Config) -> str:
 
 
 def pytest_runtest_call(item: pytest.Item) -> None:
-    if "shared_data" in getattr(item, "fixturenames", ()):
+    if "shared_data" in getattr(item, "fixturenames", ()) and item.nodeid not in _shared_data_users:
         _shared_data_users.append(item.nodeid)
 
 
@@ -254,9 +266,9 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
-    """Which tests used the shared data, and how many were skipped (more than MAX_SKIPPED fails)."""
+    """Which tests need the shared data, and how many were skipped (more than MAX_SKIPPED fails)."""
     write = terminalreporter.write_line
-    write(f"tests that used the shared data ({SHARED_DATA}): {len(_shared_data_users)}")
+    write(f"tests that need the shared data ({SHARED_DATA}): {len(_shared_data_users)}")
     for nodeid in _shared_data_users:
         write(f"  {nodeid}")
     write(f"skipped tests: {len(_skipped)} (at most {MAX_SKIPPED})")
