@@ -165,3 +165,29 @@ def test_inline_solves_finish_before_the_next_frame() -> None:
     runner.solve_inline()
     assert session.counters["solves"] >= 2 and session.state in CALIBRATED
     runner.stop()
+
+
+def test_a_failing_solve_is_counted_and_the_frames_go_on() -> None:
+    """Inline or in the worker, an exception in a solve is logged and counted, never raised into the
+    frame thread: the next frames are still answered."""
+    _, H, f = sweep(120)
+    session = CalibratorSession(
+        SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    )
+    logged: list[tuple[str, str]] = []
+
+    def failing(work: WorkBatch, budget: float) -> WorkResult:
+        raise RuntimeError("solver bug")
+
+    runner = SessionRunner(
+        session, RunnerConfig(5.0, 0.01, 1e9), log=lambda *entry: logged.append(entry), solve=failing
+    )
+    runner.start(inline=True)
+    for j in (0, 8, 16):
+        runner.solve_inline()
+        out, _ = runner.process(
+            FrameInput(j / 30, H[j], TrackingState.NEW_KEYFRAME, WIDTH, HEIGHT, j, "ref", f[j])
+        )
+        assert out.status == CalibrationStatus.INITIALISING
+    assert runner.errors >= 2 and any("solver bug" in text for _, text in logged)
+    runner.stop()

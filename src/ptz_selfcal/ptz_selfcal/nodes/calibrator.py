@@ -127,7 +127,14 @@ class CalibratorNode(Node):
         if text.startswith("worker_error"):
             self._warn_once("worker_error", text.removeprefix("worker_error: "))
             return
-        getattr(self.get_logger(), level)(text)
+        # one call site per severity: rclpy refuses a call site whose severity changes between calls
+        logger = self.get_logger()
+        if level == "warning":
+            logger.warning(text)
+        elif level == "debug":
+            logger.debug(text)
+        else:
+            logger.info(text)
 
     def _warn_once(self, kind: str, message: str) -> None:
         self._warnings.warn_once(kind, f"{kind}: {message}")

@@ -148,7 +148,7 @@ class SessionRunner:
         for _ in range(3):
             if not (self._inline and self.pending):
                 return
-            self.step(paced=False)
+            self._guarded(lambda: self.step(paced=False))
 
     def step(self, paced: bool = True) -> None:
         """One worker step: take the work, solve outside the lock, hand the result back."""
@@ -181,12 +181,18 @@ class SessionRunner:
             self._wake.clear()
             if self._stop.is_set():
                 break
-            try:
-                self.step()
-            except Exception as exc:  # the worker must survive anything
-                self.errors += 1
-                self.log("warning", f"worker_error: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            if not self._guarded(self.step):
                 time.sleep(0.1)
+
+    def _guarded(self, step: Callable[[], None]) -> bool:
+        """A step that must not take its thread down: an error is counted and logged."""
+        try:
+            step()
+        except Exception as exc:
+            self.errors += 1
+            self.log("warning", f"worker_error: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            return False
+        return True
 
     def save(self) -> list[str]:
         """Save the state: taken under the lock, written outside it (a disk never stalls a frame)."""
