@@ -13,8 +13,12 @@ resolutions over the region the mosaic covers (its fully covered pixels, eroded 
   by more than 5 px are mismatches and are counted, not measured): median angle between the two
   directions, degrees (target <= 0.03) and in mosaic pixels at that resolution (target <= 1);
 - photometric: median absolute grey-level difference after one global gain (target <= 6);
-- offline wall time per frame of the mosaic (decode, exposure pass, warp and blend; the PNG write and
-  the calibration run excluded; target <= 50 ms at 1280x720), and its CPU time.
+- offline time per frame of the mosaic (decode, exposure pass, warp and blend; the PNG write and the
+  calibration run excluded; target <= 50 ms at 1280x720): CPU time, the figure judged, since the
+  machine is shared, and wall time.
+Three mosaics per bag: every frame as published (the command's default, judged), --calibrated-only
+(the frames before the first solve carry the prior's K), and the same frames placed with the ground
+truth K and R (what the warp and the blending alone cost).
 Writes benchmarks/results/mosaic.txt (and prints it); the mosaics go to --mosaic-dir (not committed).
 """
 
@@ -32,6 +36,7 @@ import numpy as np
 
 from ptz_selfcal.mosaic.blend import build_mosaic
 from ptz_selfcal.mosaic.projection import Projection, angular_distance
+from ptz_selfcal.mosaic.warp import FrameView
 from ptz_selfcal.sim import metrics
 from ptz_selfcal.tools import mosaic as mosaic_tool
 from ptz_selfcal.tools.evaluate import BagData, read_image_stamps, read_output_bag
@@ -108,28 +113,28 @@ def compare(mosaic: np.ndarray, source: np.ndarray) -> dict[str, float]:
     }
 
 
-def bench(panorama: Path, args: argparse.Namespace, work: Path) -> tuple[str, bool]:
-    name = panorama.stem
-    bag, out_bag = work / f"{name}_in", work / f"{name}_out"
-    t0 = time.monotonic()
-    synth = ["synth", str(panorama), str(bag), "--frames", str(args.frames)]
-    synth += ["--width", str(args.width), "--height", str(args.height), *SYNTH_ARGS]
-    if cli_main(synth):
-        raise SystemExit(f"synth failed for {panorama}")
-    t1 = time.monotonic()
-    if cli_main(["run", str(bag), "--out", str(out_bag), "--quiet", "--deterministic"]):
-        raise SystemExit(f"run failed for {panorama}")
-    t2 = time.monotonic()
-    data = read_output_bag(out_bag, BagData(image_stamps=read_image_stamps(bag)))
-    frames = mosaic_tool.collect_frames(data)
-    frames = mosaic_tool.with_alignment(frames, truth_alignment(data, frames))
+def truth_frames(data: BagData, frames: mosaic_tool.Frames) -> mosaic_tool.Frames:
+    """The same frames placed with their ground-truth K and pan/tilt (the method's own error floor)."""
+    views = []
+    for stamp, v in zip(frames.stamps, frames.views):
+        js, info = data.gt_joint_states[stamp], data.gt_camera_info[stamp]
+        names = list(js.name)
+        R = metrics.rotations_from_encoders(
+            [js.position[names.index("pan")]], [js.position[names.index("tilt")]]
+        )
+        K = np.asarray(info.k, dtype=float).reshape(3, 3)
+        views.append(FrameView(K, (0.0, 0.0, 0.0), R[0], v.width, v.height))
+    return mosaic_tool.Frames(frames.stamps, views, frames.R_reference, frames.encoders, frames.skipped)
+
+
+def mosaic_row(label: str, bag: Path, frames: mosaic_tool.Frames, source: np.ndarray, args, name: str):
+    """(text lines, pass) of one mosaic of the bag's frames against the source panorama."""
     c0, w0 = time.process_time(), time.monotonic()
     source_frames = mosaic_tool.BagFrameSource(bag, frames)  # what make_mosaic builds, kept for its timing
     result = build_mosaic(source_frames, max_width=args.max_width)
     wall, cpu = time.monotonic() - w0, time.process_time() - c0
     args.mosaic_dir.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(args.mosaic_dir / f"{name}.png"), result.image)
-    source = cv2.imread(str(panorama), cv2.IMREAD_COLOR)
+    cv2.imwrite(str(args.mosaic_dir / f"{name}_{label.split()[0]}.png"), result.image)
     c = compare(result.image, source)
     n = result.frames
     ms, cpu_ms, decode_ms = (1000.0 * t / n for t in (wall, cpu, source_frames.decode_seconds))
@@ -138,25 +143,62 @@ def bench(panorama: Path, args: argparse.Namespace, work: Path) -> tuple[str, bo
         c["residual_deg"] <= TARGETS["residual_deg"]
         and c["residual_px"] <= TARGETS["residual_px"]
         and c["photometric"] <= TARGETS["photometric"]
-        and ms <= TARGETS["ms_per_frame"]
+        and cpu_ms <= TARGETS["ms_per_frame"]
     )
     p = result.projection
-    lines = [
-        f"{name} ({source.shape[1]}x{source.shape[0]}): {args.frames} frames {args.width}x{args.height}, "
-        f"synth {t1 - t0:.0f} s, run {t2 - t1:.0f} s; {n} frames placed (skipped: {skipped}); "
-        f"mosaic {p.width}x{p.height}, {c['covered_pct']:.1f} % of the sphere; compared at {c['width']} px",
-        f"  feature residual median {c['residual_deg']:.4f} deg (target <= {TARGETS['residual_deg']}), "
+    return [
+        f"  [{label}] {n} frames placed (skipped: {skipped}); mosaic {p.width}x{p.height}, "
+        f"{c['covered_pct']:.1f} % of the sphere; compared at {c['width']} px",
+        f"    feature residual median {c['residual_deg']:.4f} deg (target <= {TARGETS['residual_deg']}), "
         f"p90 {c['residual_p90_deg']:.4f} deg, median {c['residual_px']:.2f} px at the lower resolution "
         f"(target <= {TARGETS['residual_px']:.0f}); {c['matches']} matches, {c['mismatches']} mismatches",
-        f"  photometric median |difference| {c['photometric']:.2f} grey levels after one global gain "
+        f"    photometric median |difference| {c['photometric']:.2f} grey levels after one global gain "
         f"{c['gain']:.3f} (target <= {TARGETS['photometric']:.0f})",
-        f"  offline {ms:.1f} ms wall / {cpu_ms:.1f} ms CPU per frame "
-        f"(target <= {TARGETS['ms_per_frame']:.0f} ms wall), decoding (both passes) {decode_ms:.1f} ms",
-        f"  {'PASS' if ok else 'FAIL'}",
+        f"    offline {cpu_ms:.1f} ms CPU / {ms:.1f} ms wall per frame (target <= "
+        f"{TARGETS['ms_per_frame']:.0f} ms; wall on a shared machine), "
+        f"decoding (both passes) {decode_ms:.1f} ms wall",
+        f"    {'PASS' if ok else 'FAIL'}",
+    ], ok
+
+
+def bench(panorama: Path, args: argparse.Namespace, work: Path) -> tuple[str, bool]:
+    name = panorama.stem
+    bag, out_bag = work / f"{name}_in", work / f"{name}_out"
+    t0 = time.monotonic()
+    if not bag.exists():
+        synth = ["synth", str(panorama), str(bag), "--frames", str(args.frames)]
+        synth += ["--width", str(args.width), "--height", str(args.height), *SYNTH_ARGS]
+        if cli_main(synth):
+            raise SystemExit(f"synth failed for {panorama}")
+    t1 = time.monotonic()
+    if not out_bag.exists() and cli_main(
+        ["run", str(bag), "--out", str(out_bag), "--quiet", "--deterministic"]
+    ):
+        raise SystemExit(f"run failed for {panorama}")
+    t2 = time.monotonic()
+    data = read_output_bag(out_bag, BagData(image_stamps=read_image_stamps(bag)))
+    source = cv2.imread(str(panorama), cv2.IMREAD_COLOR)
+    lines = [
+        f"{name} ({source.shape[1]}x{source.shape[0]}): {args.frames} frames {args.width}x{args.height}, "
+        f"synth {t1 - t0:.0f} s, run {t2 - t1:.0f} s"
     ]
+    all_ok = True
+    for label, calibrated_only in (
+        ("published: every frame", False),
+        ("calibrated: --calibrated-only", True),
+    ):
+        frames = mosaic_tool.collect_frames(data, calibrated_only)
+        frames = mosaic_tool.with_alignment(frames, truth_alignment(data, frames))
+        row, ok = mosaic_row(label, bag, frames, source, args, name)
+        lines += row
+        all_ok &= ok if not calibrated_only else True  # the command's default is what the targets judge
+        if not calibrated_only:
+            truth = truth_frames(data, frames)
+    row, _ = mosaic_row("truth: ground-truth K and R, the method's floor", bag, truth, source, args, name)
+    lines += row
     text = "\n".join(lines)
     print(text, flush=True)
-    return text, ok
+    return text, all_ok
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -167,6 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=int, default=720)
     parser.add_argument("--max-width", type=int, default=8192)
     parser.add_argument("--mosaic-dir", type=Path, default=Path(tempfile.gettempdir()) / "ptz_mosaic_bench")
+    parser.add_argument("--work-dir", type=Path, help="keep the bags here (reused when present)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "mosaic.txt")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -179,8 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     print(header, flush=True)
     texts, all_ok = [header], True
     with tempfile.TemporaryDirectory(prefix="ptz_mosaic_bench_") as tmp:
+        work = args.work_dir or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
         for panorama in [Path(p) for p in args.panoramas.split(",") if p]:
-            text, ok = bench(panorama, args, Path(tmp))
+            text, ok = bench(panorama, args, work)
             texts.append(text)
             all_ok &= ok
     args.out.parent.mkdir(parents=True, exist_ok=True)
