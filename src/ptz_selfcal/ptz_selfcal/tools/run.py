@@ -245,6 +245,8 @@ def run(args: argparse.Namespace) -> int:
             replay.bag_qos = bag_qos
             replay.last_bag_time = bag_start
             stats = replay.run()
+            if replay.unread_late and unread is not None:
+                unread += replay.unread_late
         finally:
             writer.close()
     # The summary is printed even with --quiet (eval and benchmarks read it).
@@ -318,6 +320,7 @@ class _Replay:
         # output bag's timeline is the input's (run() sets the input's start before the first image).
         self.last_bag_time = 0
         self.bag_qos: dict[str, tuple] = {}  # input topic -> its recorded QoS profiles
+        self.unread_late = 0  # images the index promised that could not be read
         self.qos_recorded: set[str] = set()  # output topics whose publishers' QoS is set
         self.node: Any = None
         self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
@@ -537,6 +540,9 @@ class _Replay:
                 msg = next(messages, None)
                 if msg is None:
                     exhausted = True
+                    if images_read < stats.total:  # damage the bag's index did not show
+                        self.unread_late = stats.total - images_read
+                        stats.total = images_read
                     return
                 last_read = msg.timestamp_ns
                 if msg.topic == self.image_topic:
