@@ -2,6 +2,8 @@
 
 Messages stay raw CDR bytes wherever possible: play publishes them unchanged, record writes what
 arrived unchanged. The project's own message types are registered from their .msg definitions.
+A bag rosbags cannot open (cut off by a crash, no summary, a damaged sqlite3 tail) is read record by
+record up to its last complete one, and the reader says what was lost.
 """
 
 from __future__ import annotations

@@ -8,8 +8,11 @@ got no output and is counted as skipped; one without any answer within `--timeou
 Encoder messages are sent up to `--encoder-lookahead` seconds (bag time) ahead of the next image so that
 frame_ingest can interpolate without waiting. Every output topic (camera_info, frame calibration,
 homography, keyframes, diagnostics) is recorded to OUT_BAG (mcap) together with the input bag's
-non-image topics (encoders, ground truth) copied unchanged; output messages get the bag time of the
-input image with the same header stamp, so the output bag has one time base. With --deterministic the
+non-image topics (encoders, ground truth) copied unchanged (with --with-images the image topic too);
+output messages get the bag time of the input image with the same header stamp, and those without one
+(diagnostics) the newest image's, so the output bag spans the input's time. Each topic carries the QoS
+profiles its publishers offer (the input's for copies). A truncated or damaged input bag is replayed up
+to its last complete record and the summary says how many images were unreadable. With --deterministic the
 calibrator runs with inline_solves (each solve completes before the next frame) and frame_ingest only
 interpolates encoders between bracketing samples (encoder_max_hold 0, no extrapolation whose use depends
 on delivery order) and waits up to half of --timeout for them, so what each frame gets does not depend
