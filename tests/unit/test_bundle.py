@@ -55,13 +55,14 @@ def test_exact_data_converges_to_the_truth_from_a_perturbed_start(config, model)
     K, R = _perturbed_start(seq, seed=1)
     result = bundle_adjust(seq.observations(), K, R, seq.image_size, model)
     assert result.ok, result.message
-    np.testing.assert_allclose(result.focal, seq.K[:, 1, 1], rtol=1e-6)
-    np.testing.assert_allclose(result.principal_point, seq.K[:, :2, 2], atol=1e-4)
+    # 3x the worst over five sequences and starts (configuration B's varying pp converges least far)
+    np.testing.assert_allclose(result.focal, seq.K[:, 1, 1], rtol=1e-10)
+    np.testing.assert_allclose(result.principal_point, seq.K[:, :2, 2], atol=3e-8)
     np.testing.assert_allclose(result.K[:, 0, 1], 0.0, atol=1e-12)
     rotation_errors = [rotation_angle(Re @ Rt.T) for Re, Rt in zip(result.R, seq.R_relative)]
-    assert max(rotation_errors) < 1e-8
+    assert max(rotation_errors) < 1.5e-11
     np.testing.assert_array_equal(result.R[0], np.eye(3))
-    assert result.residual < 1e-6
+    assert result.residual < 5e-11
     # The start was really off: 4% focal error, a few pixels of principal point.
     assert result.bundle.initial_cost > 1e3
 
