@@ -190,3 +190,41 @@ def test_mosaic_of_rendered_views_is_the_panorama(small_panorama: np.ndarray) ->
         gain = float((mosaic * truth).sum() / (mosaic * mosaic).sum())
         assert abs(gain - 1.0) < 0.1
         assert np.median(np.abs(gain * mosaic - truth)) <= 3.0  # 5.7 without the exposure gains
+
+
+def test_the_command_decodes_every_image_encoding_in_bgr() -> None:
+    """tools/mosaic.decode_image: raw mono8/bgr8/rgb8/mono16 and compressed images, full and reduced."""
+    from ptz_selfcal.tools import synth
+    from ptz_selfcal.tools.bagio import serialize, typestore
+    from ptz_selfcal.tools.mosaic import decode_image
+
+    types = typestore().types
+    header = types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="c"
+    )
+    rng = np.random.default_rng(3)
+    bgr = rng.integers(0, 256, (32, 40, 3), dtype=np.uint8)
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+
+    def decoded(fmt: str, payload: np.ndarray | bytes, reduction: int = 1) -> np.ndarray:
+        msg = synth.image_msg(types, header, fmt, payload, (40, 32))
+        msgtype = "sensor_msgs/msg/CompressedImage" if fmt in ("jpeg", "png") else "sensor_msgs/msg/Image"
+        out = decode_image(msgtype, serialize(msg, msgtype), reduction)
+        assert out is not None
+        return out
+
+    assert np.array_equal(decoded("bgr8", bgr), bgr)
+    assert np.array_equal(decoded("rgb8", np.ascontiguousarray(bgr[:, :, ::-1])), bgr)
+    assert np.array_equal(decoded("mono8", grey), np.repeat(grey[:, :, None], 3, axis=2))
+    assert np.array_equal(decoded("png", cv2.imencode(".png", bgr)[1].tobytes()), bgr)
+    ramp = np.repeat(np.tile(np.arange(0, 240, 6, dtype=np.uint8), (32, 1))[:, :, None], 3, axis=2)
+    small = decoded("png", cv2.imencode(".png", ramp)[1].tobytes(), reduction=4)  # grey, 1/4 size
+    assert small.shape == (8, 10) and np.abs(small.astype(float) - (np.arange(10) * 24 + 9)).max() <= 12
+    assert decoded("bgr8", bgr, reduction=2).shape == (16, 20)
+    deep = grey.astype("<u2") * 256 + 77  # mono16: the high byte is the grey level
+    msg = types["sensor_msgs/msg/Image"](
+        header=header, height=32, width=40, encoding="mono16", is_bigendian=0, step=80,
+        data=np.frombuffer(deep.tobytes(), np.uint8),
+    )  # fmt: skip
+    out = decode_image("sensor_msgs/msg/Image", serialize(msg, "sensor_msgs/msg/Image"), 1)
+    assert out is not None and np.array_equal(out, np.repeat(grey[:, :, None], 3, axis=2))
