@@ -36,7 +36,18 @@ def zoom_counts(f, seed: int = 11) -> np.ndarray:
 
 
 def sweep(n: int, pan_deg: float = 30.0, tilt_deg: float = 8.0, zoom: bool = True):
-    """True K_j and H_j of a zooming pan/tilt sweep, and the zoom encoder read at each frame."""
+    """True K_j, H_j and f_j of a zooming pan/tilt sweep (encoded_sweep gives its zoom encoder instead)."""
+    K, H, f, _ = _sweep(n, pan_deg, tilt_deg, zoom)
+    return K, H, f
+
+
+def encoded_sweep(n: int, pan_deg: float = 30.0, tilt_deg: float = 8.0, zoom: bool = True):
+    """True K_j and H_j of the sweep, and the zoom encoder read at each frame (not f)."""
+    K, H, _, counts = _sweep(n, pan_deg, tilt_deg, zoom)
+    return K, H, counts
+
+
+def _sweep(n: int, pan_deg: float, tilt_deg: float, zoom: bool):
 
     def focal(t):
         return 1000.0 * (1.0 + (1.5 * np.sin(np.pi * t) if zoom else 0.0 * t))
@@ -49,7 +60,7 @@ def sweep(n: int, pan_deg: float = 30.0, tilt_deg: float = 8.0, zoom: bool = Tru
     R = np.array([ptz_rotation(p, q) for p, q in zip(pan, tilt)])
     H = np.array([K[j] @ R[j] @ R[0].T @ np.linalg.inv(K[0]) for j in range(n)])
     lagged = focal(np.clip(t - ZOOM_LAG_FRAMES / (n - 1), 0.0, 1.0))
-    return K, H, zoom_counts(lagged)
+    return K, H, f, zoom_counts(lagged)
 
 
 def feed(session: cs.CalibratorSession, H, zoom, every: int = 8, seed: int = 0, frames=None) -> list:
@@ -95,7 +106,7 @@ def assert_promises(outs: list, K_true) -> None:
 
 @pytest.fixture(scope="module")
 def calibrated_once() -> tuple[cs.CalibratorSession, np.ndarray, np.ndarray, np.ndarray, list]:
-    K, H, zoom = sweep(120)
+    K, H, zoom = encoded_sweep(120)
     session = cs.CalibratorSession(
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
@@ -207,7 +218,7 @@ def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path: Path, mo
 
 
 def test_pan_only_is_degenerate() -> None:
-    _, H, zoom = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    _, H, zoom = encoded_sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
     session = cs.CalibratorSession(
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
@@ -329,7 +340,7 @@ def test_fixed_lens_pan_only_converges_to_the_truth(tmp_path: Path) -> None:
     """The pan of test_pan_only_is_degenerate (f constant, no tilt): with a zooming model it is
     DEGENERATE_MOTION, with the fixed-lens model (square pixels, zero skew, section 6.1) it converges
     to the exact f and principal point, and every frame gets that one K."""
-    K, H, zoom = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    K, H, zoom = encoded_sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
     session = cs.CalibratorSession(fixed_lens_config(), state_dir=tmp_path)
     outs = feed(session, H, zoom, every=6)
     statuses = [o.status for o in outs]
@@ -359,7 +370,7 @@ def test_fixed_lens_pan_only_converges_to_the_truth(tmp_path: Path) -> None:
 
 
 def test_pan_only_with_a_zooming_model_says_why() -> None:
-    _, H, zoom = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    _, H, zoom = encoded_sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
     session = cs.CalibratorSession(
         cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
@@ -484,7 +495,7 @@ def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
 def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> None:
     """CONVERGED needs sigma_f below converged_max_sigma_f: with an (impossibly) strict bound a stable
     solution stays CALIBRATING and says why."""
-    _, H, zoom = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    _, H, zoom = encoded_sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
     session = cs.CalibratorSession(fixed_lens_config(converged_max_sigma_f=1e-9))
     outs = feed(session, H, zoom, every=6)
     assert S.CONVERGED not in {o.status for o in outs}
@@ -495,7 +506,7 @@ def test_fixed_lens_is_not_converged_while_its_focal_length_is_uncertain() -> No
 def test_initialising_says_why() -> None:
     """Stills fed at a video rate: every keyframe is a fast move (held out of the solve), and the
     frames say so instead of staying INITIALISING without a reason."""
-    _, H, zoom = sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
+    _, H, zoom = encoded_sweep(64, pan_deg=30.0, tilt_deg=0.0, zoom=False)
     session = cs.CalibratorSession(fixed_lens_config())
     outs = []
     for j in range(0, 64, 6):  # one "still" every 6th frame, 1 ms apart
