@@ -157,12 +157,15 @@ class SessionLensHook:
         if lens is None or H is None or not np.all(np.isfinite(H)):
             return H, state
         kid = int(keyframe_id)
+        waiting = None
         if state == TrackingState.NEW_KEYFRAME:
             lens.add_keyframe(kid, H)
             waiting = self._early_links.pop(kid, None)
-            if waiting is not None:  # its matches came first
-                self._link_now(lens, kid, *waiting)
         corrected = lens.frame_homography(H, kid)
+        if waiting is not None:
+            # its matches came first; linked after its own frame is corrected, as when they come after
+            # (the two topics are not ordered: a frame's correction must not depend on which came first)
+            self._link_now(lens, kid, *waiting)
         if corrected is not None:
             return corrected, state
         if calibrated:

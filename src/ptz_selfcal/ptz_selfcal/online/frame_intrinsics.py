@@ -62,19 +62,28 @@ class KeyframeLinks:
 
 
 def frame_intrinsics(
-    snap: CalibrationSnapshot, H: Array, keyframe_id: int, links: KeyframeLinks
+    snap: CalibrationSnapshot,
+    H: Array,
+    keyframe_id: int,
+    links: KeyframeLinks,
+    tracked_against: int | None = None,
 ) -> tuple[Array, Array, float]:
     """K_j, R_j, sigma_f of a frame whose homography from the reference is H.
 
     Tracked against a keyframe of the solve (or one linked to it), its K is that keyframe's refined K
     (bundle adjustment) transferred by H_j H_k^-1 and its orientation R_kj R_k; otherwise the reference
-    calibration is transferred by H (eq. 20).
+    calibration is transferred by H (eq. 20). A new keyframe's own frame starts from the keyframe it
+    was tracked against (`tracked_against`): its link comes on another topic, maybe after the frame,
+    and its K must not depend on which came first.
     """
     K_ref, R_ref, sigma_f = snap.calibrator.frame_intrinsics(H)
     model, size = snap.calibrator.model, snap.calibrator.image_size
     local = snap.keyframes.get(keyframe_id)
     if local is None:
-        local = _unsolved_keyframe(snap, keyframe_id, links)
+        start = keyframe_id if tracked_against is None else tracked_against
+        local = snap.keyframes.get(start)
+        if local is None:
+            local = _unsolved_keyframe(snap, start, links)
     if local is None:
         return K_ref, R_ref, sigma_f
     H_k, K_k, R_k = local

@@ -105,6 +105,7 @@ class CalibratorSession:
         self._links = KeyframeLinks()
         self._seen_keyframes: set[int] = set()
         self._motion = MotionGate(self.config.max_keyframe_motion)
+        self._tracked_against: int | None = None  # the keyframe of the last frame with a homography
         self._zoom_gate = ZoomGate(self.config)
         self._zoom_rates = ZoomRate()
         self._zoom_rate = 0.0  # zoom encoder counts / s at the current frame (0 = unknown)
@@ -159,7 +160,9 @@ class CalibratorSession:
         if self.phase is Phase.CALIBRATED:
             assert snap is not None
             try:
-                K, R, sigma_f = frame_intrinsics(snap, H, kid, self._links)
+                new = frame.tracking_state == TrackingState.NEW_KEYFRAME
+                against = self._tracked_against if new else None
+                K, R, sigma_f = frame_intrinsics(snap, H, kid, self._links, against)
                 if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
                     calibrated = (K, R, sigma_f)
             except _TRANSFER_ERRORS as exc:
@@ -170,6 +173,7 @@ class CalibratorSession:
         else:
             assert snap is not None
             verdict = self._zoom_gate.judge(snap.zoom_table, frame.zoom, calibrated[0][1, 1])
+        self._tracked_against = kid
         if frame.tracking_state == TrackingState.NEW_KEYFRAME and kid not in self._seen_keyframes:
             self._keyframe_added(frame, kid, H, fast, verdict)
         if verdict is ZoomVerdict.REFUSE:
@@ -349,6 +353,7 @@ class CalibratorSession:
         self._seen_keyframes.clear()
         self._links.forget_reference()
         self._motion.forget()
+        self._tracked_against = None
         self._pending.clear()
 
     # ---- persistence -----------------------------------------------------------------------------
