@@ -3,7 +3,8 @@
 Subscribes topics.IMAGE_RAW and/or topics.IMAGE_COMPRESSED (parameter `input`) and topics.JOINT_STATES;
 publishes one IngestedFrame per usable image on topics.FRAME_IN with the encoders interpolated to the
 image stamp (frontend/encoders.py), the full-resolution size and the working scale; DiagnosticArray on
-topics.DIAGNOSTICS. Unusable images (unsupported or lying encoding, step/size mismatch, zero or huge
+topics.DIAGNOSTICS (STALE while images or encoder messages do not arrive, ERROR while every one is
+unusable). Unusable images (unsupported or lying encoding, step/size mismatch, zero or huge
 size, undecodable compressed data, truncated messages, duplicate stamps) are counted per kind, logged once
 per kind and skipped; black or flat frames pass (the tracker decides). Images are taken serialized
 (raw subscriptions) and read in place (nodes/conversions.parse_serialized_image), so a huge one is refused
@@ -523,7 +524,11 @@ class FrameIngest(Node):
         duplicates = self._counts["skipped_duplicate_stamp"]
         bad_run = self._bad_images.update(self._counts["frames_in"] - duplicates, skipped - duplicates)
         if bad_run >= self._p["error_threshold"]:
-            unusable = sorted(k.removeprefix("skipped_") for k in self._counts if k.startswith("skipped_"))
+            unusable = sorted(
+                k.removeprefix("skipped_")
+                for k in self._counts
+                if k.startswith("skipped_") and k != "skipped_duplicate_stamp"
+            )
             error.append(f"the last {bad_run} images were all unusable ({', '.join(unusable)})")
         joints = list(self._encoder_config.joints)
         encoder_run = self._bad_encoders.update(
