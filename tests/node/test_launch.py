@@ -6,6 +6,7 @@ import os
 import re
 import signal
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
@@ -42,9 +43,10 @@ def gone(pid: int) -> bool:
     return not status.exists() or "zombie" in status.read_text()
 
 
-def graph_nodes(namespace: str, timeout: float) -> tuple[set[str], set[str]]:
-    """Node names visible in the ROS graph under a namespace (polls until all three or timeout), and
-    the topic names of the graph."""
+def graph_nodes(namespace: str, timeout: float, topics: Iterable[str] = ()) -> tuple[set[str], set[str]]:
+    """Node names visible in the ROS graph under a namespace, and the topic names of the graph; polls
+    until all three nodes and the given topics are there (a node is visible before its publishers), or
+    timeout (a safety net for a loaded machine, not a measured bound)."""
     import rclpy
 
     context = rclpy.Context()
@@ -53,12 +55,14 @@ def graph_nodes(namespace: str, timeout: float) -> tuple[set[str], set[str]]:
     try:
         deadline = time.monotonic() + timeout
         found: set[str] = set()
+        names: set[str] = set()
         while time.monotonic() < deadline:
             found = {n for n, ns in node.get_node_names_and_namespaces() if ns == namespace}
-            if set(NODES) <= found:
+            names = {name for name, _types in node.get_topic_names_and_types()}
+            if set(NODES) <= found and set(topics) <= names:
                 break
             time.sleep(0.1)
-        return found, {name for name, _types in node.get_topic_names_and_types()}
+        return found, names
     finally:
         node.destroy_node()
         context.try_shutdown()
@@ -83,7 +87,7 @@ def test_three_processes_ctrl_c_stops_all_with_exit_0(launch_env, start_process)
     )
     pids = wait_started(proc, 3)
     assert set(pids) == set(NODES) and len({p[0] for p in pids.values()}) == 3
-    nodes, topic_names = graph_nodes("/cam7", 20.0)
+    nodes, topic_names = graph_nodes("/cam7", 60.0, ["/cam7/ptz/selfcal/camera_info", "/cam7/camera/image"])
     assert set(NODES) <= nodes, proc.output()
     assert "/cam7/camera/image" in topic_names and "/cam7/ptz/image_raw" not in topic_names  # remapped
     assert "/cam7/ptz/selfcal/camera_info" in topic_names
@@ -153,7 +157,7 @@ def test_nice_applies_to_every_node_thread_and_session(launch_env, start_process
     env, extra = launch_env
     proc = start_process(cli_command("launch", "--namespace", "/cam8", "--nice", "7", *extra), env, "launch")
     pids = wait_started(proc, 3)
-    nodes, _ = graph_nodes("/cam8", 20.0)  # up and running: their DDS and executor threads exist now
+    nodes, _ = graph_nodes("/cam8", 60.0)  # up and running: their DDS and executor threads exist now
     assert set(NODES) <= nodes, proc.output()
     for name, (pid,) in pids.items():
         tasks = list(Path(f"/proc/{pid}/task").iterdir())
