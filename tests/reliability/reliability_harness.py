@@ -118,15 +118,19 @@ def start_graph(
 ) -> dict[str, object]:
     """The three nodes as separate processes on the shipped parameter file, then -p NAME:=VALUE overrides:
     diagnostics every 0.25 s (the harness waits on the nodes' counters), a reliable image subscription
-    (the feeder is lossless: a best-effort reader would let it lose frames) and the caller's."""
+    and lossless queues (the feeder is lossless: a best-effort reader or a latest-wins queue would let
+    it lose frames) and the caller's, which come last and win."""
 
     def params(*values: str) -> list[str]:
         return [arg for v in values for arg in ("-p", v)]
 
     width = () if working_width is None else (f"working_width:={working_width}",)
+    # lossless queues unless the caller says otherwise (the harness counts every frame it feeds; the
+    # shipped live default sheds a frame the nodes fall 50 behind on)
+    lossless = "queue_policy:=lossless"
     extra = {
-        "frame_ingest": params("sensor_reliability:=reliable", *width, *ingest),
-        "homography_tracker": params(*tracker),
+        "frame_ingest": params("sensor_reliability:=reliable", lossless, *width, *ingest),
+        "homography_tracker": params(lossless, *tracker),
         "calibrator": params(*calibrator),
     }
     return {
