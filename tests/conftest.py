@@ -36,36 +36,6 @@ MAX_SKIPPED = 5
 _skipped: list[str] = []
 _shared_data_users: list[str] = []
 
-STUB_CALIBRATOR = '''"""Stand-in for nodes/calibrator.py: one CameraInfo + FrameCalibration per homography."""
-import sys
-
-from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo
-
-from ptz_selfcal import topics
-from ptz_selfcal.nodes.runtime import reliable_qos, run_node
-from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped
-
-
-class StubCalibrator(Node):
-    def __init__(self):
-        super().__init__("calibrator")
-        self.info = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
-        self.frame = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
-        self.create_subscription(HomographyStamped, topics.HOMOGRAPHY, self.on_h, reliable_qos())
-
-    def on_h(self, msg):
-        info = CameraInfo(header=msg.header, width=msg.image_width, height=msg.image_height)
-        f = float(msg.image_width)
-        info.k = [f, 0.0, msg.image_width / 2, 0.0, f, msg.image_height / 2, 0.0, 0.0, 1.0]
-        self.info.publish(info)
-        self.frame.publish(FrameCalibration(header=msg.header, fx=f, fy=f, encoders=msg.encoders))
-
-
-if __name__ == "__main__":
-    sys.exit(run_node(StubCalibrator))
-'''
-
 
 @pytest.fixture
 def ros_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
@@ -160,20 +130,6 @@ def node_command(module: str, *ros_args: str) -> list[str]:
 def cli_command(*args: str) -> list[str]:
     """The `ptz-selfcal` entry point, independent of whether its console script is installed."""
     return [PYTHON, "-c", "import sys; from ptz_selfcal.tools.cli import main; sys.exit(main())", *args]
-
-
-@pytest.fixture(scope="session")
-def stub_calibrator_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A directory to put on PYTHONPATH that holds `stub_calibrator` (module name)."""
-    directory = tmp_path_factory.mktemp("stub_calibrator")
-    (directory / "stub_calibrator.py").write_text(STUB_CALIBRATOR)
-    return directory
-
-
-def calibrator_available() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("ptz_selfcal.nodes.calibrator") is not None
 
 
 def make_synth_bag(out: Path, frames: int, width: int, height: int, *extra: str) -> Path:

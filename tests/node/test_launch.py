@@ -10,20 +10,16 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
-from conftest import calibrator_available, cli_command
+from conftest import cli_command
 
 ROS_DOMAIN_ID = 111
 NODES = ("frame_ingest", "homography_tracker", "calibrator")
 
 
 @pytest.fixture
-def launch_env(ros_env, stub_calibrator_path) -> tuple[dict[str, str], list[str]]:
-    """Environment and extra arguments: the real calibrator when it exists, else the stub."""
-    if calibrator_available():
-        return ros_env, []
-    env = dict(ros_env)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(stub_calibrator_path), env.get("PYTHONPATH")) if p)
-    return env, ["--node-module", "calibrator=stub_calibrator"]
+def launch_env(ros_env) -> tuple[dict[str, str], list[str]]:
+    """Environment and extra arguments for the real node suite."""
+    return ros_env, []
 
 
 def started_pids(output: str) -> dict[str, list[int]]:

@@ -8,7 +8,6 @@ tests count and match outputs; the accuracy of a replay is tests/bag/test_eval.p
 from __future__ import annotations
 
 import math
-import os
 import re
 import subprocess
 from dataclasses import replace
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import calibrator_available, cli_command
+from conftest import cli_command
 
 from ptz_selfcal import topics
 from ptz_selfcal.tools.bagio import BagReader, BagWriter, deserialize, serialize
@@ -27,13 +26,9 @@ JOINTS = topics.bag_topic(topics.JOINT_STATES)
 
 
 @pytest.fixture
-def run_env(ros_env, stub_calibrator_path) -> tuple[dict[str, str], list[str]]:
-    """The real calibrator when it exists, else the stub (the run machinery is what is under test)."""
-    if calibrator_available():
-        return ros_env, []
-    env = dict(ros_env)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(stub_calibrator_path), env.get("PYTHONPATH")) if p)
-    return env, ["--calibrator-module", "stub_calibrator"]
+def run_env(ros_env) -> tuple[dict[str, str], list[str]]:
+    """The real node suite's environment, and no extra arguments for `run`."""
+    return ros_env, []
 
 
 def run_cli(env: dict[str, str], *args: str, timeout: float = 90.0) -> subprocess.CompletedProcess:
