@@ -5,9 +5,11 @@ ptz/selfcal/frame; the images come from the same bag or from --input-bag) or an 
 encoders), which is first run through the real nodes (tools/run.py) into a temporary directory.
 Each frame is placed through its published K, plumb_bob D and orientation (mosaic/): frames whose
 orientation is the invalid zero quaternion, frames without a calibration and frames of another tracking
-reference than the largest one are skipped and counted. The mosaic is levelled with the encoders
-passed through in FrameCalibration when there are any (pan 0 at the centre, the horizon level);
-otherwise its frame is the calibration's reference. The width gives one mosaic pixel per image pixel
+reference than the largest one are skipped and counted, and so are, unless --all-frames, the frames
+published before the first solve (status not calibrated: the prior's K misplaces them, and they ghost
+across the mosaic; when no frame is calibrated every frame is placed). The mosaic is levelled with
+the encoders passed through in FrameCalibration when there are any (pan 0 at the centre, the horizon
+level); otherwise its frame is the calibration's reference. The width gives one mosaic pixel per image pixel
 at the longest focal length seen, capped by --max-width. The PNG is BGRA: alpha 0 where nothing was seen.
 """
 
@@ -63,9 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="levelled by the encoders (auto: when present) or in the calibration's reference frame",
     )
     parser.add_argument(
-        "--calibrated-only",
+        "--all-frames",
         action="store_true",
-        help="skip the frames published before the first solve (with the prior's K)",
+        help="also the frames published before the first solve (the prior's K: they ghost)",
     )
     parser.add_argument("--no-exposure", action="store_true", help="no per-frame gain compensation")
     parser.add_argument("--params", metavar="FILE", help="parameter YAML for the nodes (input bags)")
@@ -246,7 +248,11 @@ def _mosaic_from(output_bag: Path, image_bag: Path, args: argparse.Namespace) ->
             f"{image_bag}: no images ({', '.join(IMAGE_TOPICS)}); pass the input bag with --input-bag"
         )
     data = BagData(image_stamps=read_image_stamps(image_bag)) if image_bag != output_bag else None
-    frames = collect_frames(read_output_bag(output_bag, data), args.calibrated_only)
+    data = read_output_bag(output_bag, data)
+    frames = collect_frames(data, calibrated_only=not args.all_frames)
+    if not frames.views and not args.all_frames:
+        print("mosaic: no frame is calibrated, placing every frame with its published K", file=sys.stderr)
+        frames = collect_frames(data)
     A = encoder_alignment(frames) if args.frame != "reference" else None
     if args.frame == "encoders" and A is None:
         raise CliError("--frame encoders: fewer than 3 frames carry encoder readings")
