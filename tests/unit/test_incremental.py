@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import json
 import math
-import time
 
 import numpy as np
 import yaml
@@ -145,7 +145,9 @@ def test_solver_seam_receives_keyframe_records() -> None:
 
 
 def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
-    """5000 frames, each offered as a keyframe: memory and per-call time stay bounded."""
+    """5000 frames, each offered as a keyframe: what each call works on stays bounded (the keyframe set
+    and the saved state do not grow), so its cost does too; the per-call time itself is measured by the
+    core soak in benchmarks/reliability.py, not asserted on a shared CI machine."""
     n, max_keyframes = 5000, 25
     t = np.arange(n) / 50.0
     pan = np.radians(20.0) * np.sin(0.31 * t)
@@ -154,24 +156,24 @@ def test_unbounded_run_keeps_keyframes_and_cost_bounded() -> None:
     K0 = intrinsic_matrix(f[0], *CENTRE)
     R0 = ptz_rotation(pan[0], tilt[0])
     calibrator = IncrementalCalibrator(SIZE, max_keyframes=max_keyframes)
-    times = np.empty(n)
+    state_size: dict[int, int] = {}
     worst = 0.0
     for i in range(1, n):
         K_i = intrinsic_matrix(f[i], *CENTRE)
         H = infinite_homography(K0, K_i, relative_rotation(R0, ptz_rotation(pan[i], tilt[i])))
-        start = time.perf_counter()
         calibrator.add_keyframe(i, H, stamp=float(t[i]))
         if calibrator.calibrated and i % 500 == 0:
             calibrator.reoptimise()  # a periodic re-solve over the bounded set
+            state_size[i] = len(json.dumps(calibrator.to_dict()))
         K_est, _, _ = calibrator.frame_intrinsics(H)
-        times[i] = time.perf_counter() - start
         assert len(calibrator.keyframes) <= max_keyframes
         if calibrator.calibrated and i % 250 == 0:
             worst = max(worst, rel_err(K_est, K_i))
     assert calibrator.state is CalibrationStatus.CONVERGED
     assert worst < 1e-6
-    early, late = np.median(times[1:1000]), np.median(times[-1000:])
-    assert late < 3.0 * early + 1e-4
+    assert len(calibrator.keyframes) == max_keyframes
+    early, late = state_size[1000], state_size[4500]
+    assert late <= 1.1 * early, state_size  # the same bounded set, not a growing history
 
 
 def test_near_ambiguous_solution_is_kept_but_reported() -> None:
