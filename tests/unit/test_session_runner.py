@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from test_calibration_state import HEIGHT, WIDTH, feed, sweep
+from test_calibration_state import HEIGHT, WIDTH, encoded_sweep, feed
 
 from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
 from ptz_selfcal.online.config import SessionConfig
@@ -41,7 +41,7 @@ class HeldSolve:
 @pytest.fixture
 def converged() -> tuple[CalibratorSession, np.ndarray, np.ndarray, np.ndarray]:
     """A session converged on a zooming sweep, with a usable zoom model (inline solves)."""
-    K, H, f = sweep(120)
+    K, H, f = encoded_sweep(120)
     session = CalibratorSession(
         SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
@@ -149,7 +149,7 @@ def test_the_session_phase_follows_its_events(converged) -> None:
 def test_inline_solves_finish_before_the_next_frame() -> None:
     """inline_solves: no worker thread; the frame thread solves what the previous frames brought before
     it takes the next one, so a lock-step replay is the same every run."""
-    _, H, f = sweep(120)
+    _, H, f = encoded_sweep(120)
     session = CalibratorSession(
         SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
@@ -170,7 +170,7 @@ def test_inline_solves_finish_before_the_next_frame() -> None:
 def test_a_failing_solve_is_counted_and_the_frames_go_on() -> None:
     """Inline or in the worker, an exception in a solve is logged and counted, never raised into the
     frame thread: the next frames are still answered."""
-    _, H, f = sweep(120)
+    _, H, f = encoded_sweep(120)
     session = CalibratorSession(
         SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
