@@ -42,11 +42,11 @@ def _cli(*args: str, timeout: float = 240.0) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """(input bag, output bag of `ptz-selfcal run`)."""
+    """(input bag, output bag of `ptz-selfcal run --with-images`: it holds the images too)."""
     root = tmp_path_factory.mktemp("mosaic")
     in_bag = make_synth_bag(root / "in", FRAMES, WIDTH, HEIGHT, *SYNTH)
     out_bag = root / "out"
-    proc = _cli("run", str(in_bag), "--out", str(out_bag), "--quiet", "--deterministic")
+    proc = _cli("run", str(in_bag), "--out", str(out_bag), "--quiet", "--deterministic", "--with-images")
     assert proc.returncode == 0, proc.stderr[-3000:]
     return in_bag, out_bag
 
@@ -90,9 +90,9 @@ def _placed(stdout: str) -> int:
 
 
 def test_mosaic_of_an_output_bag(bags: tuple[Path, Path], tmp_path: Path) -> None:
-    in_bag, out_bag = bags
+    out_bag = bags[1]
     out = tmp_path / "pano.png"
-    proc = _cli("mosaic", str(out_bag), "--input-bag", str(in_bag), "--out", str(out), "--quiet")
+    proc = _cli("mosaic", str(out_bag), "--out", str(out), "--quiet")  # the images from the output bag
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = evaluate.read_output_bag(out_bag)
     valid = {
