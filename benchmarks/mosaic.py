@@ -100,14 +100,15 @@ def compare(mosaic: np.ndarray, source: np.ndarray) -> dict[str, float]:
     keep = shift <= MISMATCH_PX
     proj = Projection.spherical(width)
     angles = np.degrees(angular_distance(proj.rays_of_pixels(pm[keep]), proj.rays_of_pixels(ps[keep])))
+    matches, mismatches = int(keep.sum()), int((~keep).sum())
     if not keep.any():  # nothing to measure (a featureless or misplaced mosaic): reported as nan
         angles = shift = np.full(1, np.nan)
         keep = np.ones(1, bool)
     return {
         "width": width,
         "covered_pct": 100.0 * float((mosaic[:, :, 3] > 0).mean()),
-        "matches": int(keep.sum()),
-        "mismatches": int((~keep).sum()),
+        "matches": matches,
+        "mismatches": mismatches,
         "residual_deg": float(np.median(angles)),
         "residual_p90_deg": float(np.percentile(angles, 90)),
         "residual_px": float(np.median(shift[keep])),
