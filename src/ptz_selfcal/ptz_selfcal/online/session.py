@@ -64,6 +64,8 @@ _S = CalibrationStatus
 _TRANSFER_ERRORS = (SelfCalibrationError, ValueError, np.linalg.LinAlgError)
 
 
+_MATCH_WAIT_FRAMES = 8  # more than the frames a lock-step replay keeps in flight
+
 _FRAME_COUNTERS = (
     *("frames", "keyframe_matches", "invalid_homographies", "frames_without_homography"),
     *("reference_changes", "state_saves", "zoom_gate_rejections", "fast_motion_keyframes"),
@@ -97,7 +99,7 @@ class CalibratorSession:
         self._snapshot: CalibrationSnapshot | None = None
         self._zoom: ZoomModel | None = None  # read-only copy of the learned zoom model, when usable
         self._pending: list[PendingKeyframe] = []
-        self._pending_matches: list[KeyframeMatchSet] = []
+        self._pending_matches: list[tuple[int, KeyframeMatchSet]] = []  # (frame count at arrival, set)
         self.reference_id: str | None = None
         self.phase = Phase.NO_REFERENCE
         self.image_size: tuple[int, int] | None = None
@@ -288,7 +290,8 @@ class CalibratorSession:
                 f"keyframe matches {keyframe_id}<->{other_keyframe_id} unusable ({len(a)}/{len(b)} points)"
             )
             return False
-        self._pending_matches.append(KeyframeMatchSet(int(keyframe_id), int(other_keyframe_id), a, b))
+        matches = KeyframeMatchSet(int(keyframe_id), int(other_keyframe_id), a, b)
+        self._pending_matches.append((self._counters["frames"], matches))
         h = None  # a keyframe not yet in the solve borrows the calibration of the keyframe it is linked to
         if H is not None:
             h = np.asarray(H, dtype=float).reshape(3, 3)
@@ -308,14 +311,19 @@ class CalibratorSession:
         """The keyframes and matches collected since the last batch, for the solving half (paced: its
         re-optimisations keep to max_solve_duty of a core; False: they run whenever due)."""
         refused = self._links.refused
-        matches = tuple(
-            m
-            for m in self._pending_matches
-            if m.keyframe_id not in refused and m.other_keyframe_id not in refused
-        )
+        ready = [m for arrival, m in self._pending_matches if self._ready(arrival, m)]
+        self._pending_matches = [(a, m) for a, m in self._pending_matches if not self._ready(a, m)]
+        matches = tuple(m for m in ready if not {m.keyframe_id, m.other_keyframe_id} & refused)
         work = WorkBatch(self._epoch, self.image_size, tuple(self._pending), matches, paced)
-        self._pending, self._pending_matches = [], []
+        self._pending = []
         return work
+
+    def _ready(self, arrival: int, matches: KeyframeMatchSet) -> bool:
+        """A keyframe's matches wait for its own frame (they come on another topic, maybe first), so that
+        the solve sees them at the same point whatever the arrival order; a keyframe whose frame never
+        comes (shed upstream) lets them go after a few frames."""
+        waited = self._counters["frames"] - arrival
+        return matches.keyframe_id in self._seen_keyframes or waited >= _MATCH_WAIT_FRAMES
 
     def accept(self, result: WorkResult) -> bool:
         """A result of the solving half; False (dropped) when it belongs to an older reference."""
@@ -471,7 +479,8 @@ class CalibratorSession:
     def pending_work(self) -> int:
         """Keyframes, match sets and refinements not yet done by the solving half (0: it is idle)."""
         r = self._result
-        return len(self._pending) + len(self._pending_matches) + r.backlog + int(r.needs_refinement)
+        ready = sum(self._ready(arrival, m) for arrival, m in self._pending_matches)
+        return len(self._pending) + ready + r.backlog + int(r.needs_refinement)
 
     def _warn(self, text: str) -> None:
         self._warnings.append(text)
