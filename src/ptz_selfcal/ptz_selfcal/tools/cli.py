@@ -19,6 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("ptz_selfcal.tools.evaluate", "run + compare with encoders and ground truth: report and plots"),
     "synth": ("ptz_selfcal.tools.synth", "render a PTZ camera bag from an equirectangular panorama"),
     "mosaic": ("ptz_selfcal.tools.mosaic", "panoramic mosaic (PNG) of a bag through its calibration"),
+    "export-calibration": (
+        "ptz_selfcal.tools.export_calibration",
+        "write camera_calibration YAML per zoom setting from a saved zoom model",
+    ),
 }
 
 
