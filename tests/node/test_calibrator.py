@@ -462,3 +462,31 @@ def _diag_value(arrays: list[DiagnosticArray], key: str) -> float:
                     with_value = float(kv.value)
                     best = max(best, with_value)
     return best
+
+
+def test_uncalibrated_option_publishes_k_zero_until_the_first_calibration(ros, tmp_path: Path) -> None:
+    """camera_info_before_calibration:=uncalibrated: ROS's convention, K = P = 0, while the K would be
+    the nominal prior (FrameCalibration still says INITIALISING, with the prior's fx); the calibration,
+    once there, is published as usual (a fixed lens's pan, as in the test above)."""
+    ns = "cam_u"
+    options = ("camera_info_before_calibration:=uncalibrated", "focal_model:=constant")
+    proc = start_calibrator("/" + ns, tmp_path, *options)
+    harness = _namespaced_harness(ns)
+    try:
+        harness.wait_connected()
+        n = 72
+        K, H, f0 = fixed_lens_pan(n)
+        zoom = zoom_counts(np.full(n + 1, f0))
+        send_keyframed(harness, H, zoom[:n])
+        info, frame = harness.infos[T0_NS], harness.frames[T0_NS]  # the first frame
+        assert frame.status == FrameCalibration.INITIALISING and frame.fx > 0.0
+        assert not any(info.k) and not any(info.p) and info.width == 1280, (info.k, info.p)
+        harness.wait_settled(expected_keyframes=n // 6 - 1, timeout=20.0)
+        stamp = harness.send(n + 1000, H[n - 1], HomographyStamped.TRACKING, n - 6, zoom[n])
+        info, frame = harness.infos[stamp], harness.frames[stamp]
+        assert frame.status in (FrameCalibration.CALIBRATING, FrameCalibration.CONVERGED), frame.status
+        assert info.k[0] == pytest.approx(frame.fx) and abs(info.k[0] / K[0][0, 0] - 1.0) < 0.01
+        assert info.p[0] == pytest.approx(frame.fx)
+    finally:
+        stop(proc)
+        harness.close()

@@ -198,7 +198,10 @@ class CalibratorNode(Node):
         width, height = int(msg.image_width), int(msg.image_height)
         info = CameraInfo()
         info.header = msg.header
-        for key, value in camera_info_fields(out.K, width, height, out.D[0], out.D[1]).items():
+        K, D = out.K, out.D
+        if out.source in _PRIOR_SOURCES and self._p["camera_info_before_calibration"] == "uncalibrated":
+            K, D = np.zeros((3, 3)), np.zeros(5)  # ROS's "uncalibrated": no K until a calibration
+        for key, value in camera_info_fields(K, width, height, D[0], D[1]).items():
             setattr(info, key, value)
         self._info_pub.publish(info)
 
@@ -309,6 +312,10 @@ def _session_counters(s: CalibratorSession) -> dict[str, Any]:
     counters.update({k: f"{v:.3f}" for k, v in s.timings_ms().items() if math.isfinite(v)})
     counters["calibration_state"] = s.state
     return counters
+
+
+# the outputs that are a prior, not a calibration (a learned zoom model's K is one)
+_PRIOR_SOURCES = frozenset({"prior", "nominal"})
 
 
 def _finite_or(value: float, default: float) -> float:

@@ -51,6 +51,13 @@ class CalibratorNodeConfig:
         "internal errors (frame path or worker) after which diagnostics report ERROR",
         bounds=(1, 1_000_000),
     )
+    camera_info_before_calibration: str = setting(
+        "prior",
+        "CameraInfo before the first calibration: prior (the nominal K; FrameCalibration.status says it "
+        "is not calibrated yet) or uncalibrated (K = P = 0, ROS's convention for an uncalibrated camera; "
+        "FrameCalibration still carries the prior)",
+        choices=("prior", "uncalibrated"),
+    )
     inline_solves: bool = setting(
         False,
         "solve in the frame callback before the next frame instead of in the worker (each solve completes "
