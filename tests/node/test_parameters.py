@@ -4,6 +4,7 @@ reports, and it refuses an out-of-range value, keeping the old one (issue 17).""
 from __future__ import annotations
 
 import os
+import time
 
 import pytest
 from conftest import NodeProcess, node_command
@@ -31,11 +32,19 @@ class ParamClient:
     def wait(self, timeout: float) -> bool:
         return all(c.wait_for_service(timeout_sec=timeout) for c in (self.set, self.get, self.describe))
 
-    def call(self, client, request, timeout: float = 20.0):
-        future = client.call_async(request)
-        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
-        assert future.done(), f"no answer from {client.srv_name}"
-        return future.result()
+    def call(self, client, request, timeout: float = 60.0, attempt: float = 10.0):
+        """The service's answer. A request whose answer does not come is sent again (the parameter
+        services are idempotent): on a loaded machine a new client's reply path can match after its
+        request path, and that first answer is lost. `timeout` is a safety net, not a measured bound."""
+        deadline = time.monotonic() + timeout
+        while True:
+            future = client.call_async(request)
+            wait = max(min(attempt, deadline - time.monotonic()), 0.1)
+            self.executor.spin_until_future_complete(future, timeout_sec=wait)
+            if future.done():
+                return future.result()
+            client.remove_pending_request(future)
+            assert time.monotonic() < deadline, f"no answer from {client.srv_name}"
 
     def set_value(self, name: str, value):
         from rcl_interfaces.srv import SetParameters
