@@ -229,9 +229,10 @@ def flatness(n: int, keyframe_every: int, lines: list[str]) -> None:
         f"{np.percentile(frame_t[b], 95) * 1e3:.3f} ms; resident memory "
         f"{rss.get(2000, math.nan):.1f} MB at 2000 frames, {rss.get(n, math.nan):.1f} MB at {n}"
     )
+    statuses = {str(k): v for k, v in session.status_counts.items()}  # names, not enum reprs
     lines.append(
         f"   focal error of calibrated frames: median {100 * np.nanmedian(err[a]):.4f}% (1000-2000), "
-        f"{100 * np.nanmedian(err[b]):.4f}% ({n - 1000}-{n}); statuses {session.status_counts}"
+        f"{100 * np.nanmedian(err[b]):.4f}% ({n - 1000}-{n}); statuses {statuses}"
     )
 
 
