@@ -149,7 +149,7 @@ class SessionConfig:
         "adjustment. D = its plumb_bob fit at each frame's K. Off by default: on an undistorted lens it "
         "costs accuracy (benchmarks/results/distortion.txt)",
     )
-    # sigma_f measures the noise: uncertainty is reported instead of confident nonsense (DESIGN.md 5.5)
+    # sigma_f measures the noise: uncertainty is reported instead of confident nonsense
     converged_max_sigma_f: float = setting(
         0.01,
         "focal_model constant: CONVERGED only while the focal length's 1-sigma is below this fraction "

@@ -1,4 +1,4 @@
-"""plumb_bob D of a calibrated frame (DESIGN.md §3: D = [k1, k2, 0, 0, 0], zeros where not estimated)."""
+"""plumb_bob D of a calibrated frame: [k1, k2, 0, 0, 0], zeros where distortion is not estimated."""
 
 from __future__ import annotations
 

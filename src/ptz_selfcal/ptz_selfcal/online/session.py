@@ -311,9 +311,11 @@ class CalibratorSession:
         """The keyframes and matches collected since the last batch, for the solving half (paced: its
         re-optimisations keep to max_solve_duty of a core; False: they run whenever due)."""
         refused = self._links.refused
-        ready = [m for arrival, m in self._pending_matches if self._ready(arrival, m)]
-        self._pending_matches = [(a, m) for a, m in self._pending_matches if not self._ready(a, m)]
-        matches = tuple(m for m in ready if not {m.keyframe_id, m.other_keyframe_id} & refused)
+        ready, waiting = [], []
+        for arrival, m in self._pending_matches:
+            (ready if self._ready(arrival, m) else waiting).append((arrival, m))
+        self._pending_matches = waiting
+        matches = tuple(m for _, m in ready if not {m.keyframe_id, m.other_keyframe_id} & refused)
         work = WorkBatch(self._epoch, self.image_size, tuple(self._pending), matches, paced)
         self._pending = []
         return work
