@@ -20,6 +20,7 @@ from ptz_selfcal.sim.render import (
     pyramid_blend,
     render_view,
 )
+from ptz_selfcal.sim.synthetic import circle_rotations
 
 PANO_W, PANO_H = 2048, 1024
 BLOB_SIGMA = 2.0  # panorama pixels
@@ -214,3 +215,74 @@ def test_image_model_noise_and_gain() -> None:
     assert a.mean() == pytest.approx(110.0, abs=0.2) and a.std() == pytest.approx(2.0, rel=0.1)
     clean = ImageModel(noise_sigma=0.0, brightness_drift=0.0).apply(image, 1.0, np.random.default_rng(0))
     assert np.array_equal(clean, image)
+
+
+def _optical_axes(pan: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """(n, 3) world directions of the principal ray: the third row of R (R maps world to camera)."""
+    return np.array([ptz_rotation(p, t)[2] for p, t in zip(pan, tilt)])
+
+
+def test_circle_motion_is_the_papers_circle() -> None:
+    """The principal ray stays on a cone of the given half angle about world +z, equally spaced over one
+    turn, and frame for frame the rotations of sim/synthetic.py (section 4.1)."""
+    n, fps = 30, 2.0
+    p = _profile(
+        period=(n - 1) / fps, motion="circle", circle_radius=np.radians(3.5), circle_period=n / fps,
+        corner_shift=0.0,
+    )  # fmt: skip
+    pan, tilt = p.pan_tilt(np.arange(n) / fps)
+    axes = _optical_axes(pan, tilt)
+    np.testing.assert_allclose(np.degrees(np.arccos(axes[:, 2])), 3.5, atol=1e-9)
+    phase = np.unwrap(np.arctan2(-axes[:, 1], axes[:, 0]))
+    np.testing.assert_allclose(np.diff(phase), 2.0 * np.pi / n, atol=1e-9)
+    R = np.array([ptz_rotation(a, b) for a, b in zip(pan, tilt)])
+    np.testing.assert_allclose(R, circle_rotations(n, 3.5), atol=1e-12)
+    assert pan[0] == pytest.approx(np.radians(3.5)) and tilt[0] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_linear_zoom_law_and_drift() -> None:
+    """zoom_law linear: f from f_wide to f_wide * zoom_max linearly in time (held outside the sequence);
+    a principal point drift is then linear in time too."""
+    p = _profile(f_wide=800.0, zoom_max=1400.0 / 800.0, zoom_law="linear", pp_drift=(6.0, -4.0), period=14.5)
+    t = np.linspace(0.0, 14.5, 30)
+    f = p.focal(t)
+    np.testing.assert_allclose(f, np.linspace(800.0, 1400.0, 30), rtol=1e-12)
+    np.testing.assert_allclose(p.focal([-1.0, 20.0]), [800.0, 1400.0], rtol=1e-12)
+    pp = p.principal_point(f)
+    np.testing.assert_allclose(pp[-1] - pp[0], [6.0, -4.0], atol=1e-9)
+    np.testing.assert_allclose(np.diff(pp, axis=0), np.diff(pp, axis=0)[:1].repeat(29, 0), atol=1e-9)
+
+
+def test_slow_start_ramps_the_speed_and_keeps_the_path() -> None:
+    """slow_start S: the head barely moves at first (speed ~ (t/S)^2), reaches full speed by S, and the
+    path still runs from where it starts to where it ends (pan, tilt and zoom alike)."""
+    plain, slow = _profile(corner_shift=0.0), _profile(corner_shift=0.0, slow_start=3.0)
+    t = np.linspace(0.0, 10.0, 1001)
+    for a, b in zip(plain.pan_tilt(t), slow.pan_tilt(t)):
+        assert a[0] == b[0] and a[-1] == pytest.approx(b[-1], abs=1e-12)
+    pan, _ = slow.pan_tilt(t)
+    speed = np.abs(np.diff(pan)) / np.diff(t)
+    full = np.abs(np.diff(plain.pan_tilt(t)[0]) / np.diff(t))
+    assert speed[:50].max() < 0.05 * full[:50].max()  # the first 0.5 s: under 5% of the plain speed
+    assert slow.clock(np.array([3.0, 6.0, 10.0]))[-1] == pytest.approx(10.0)
+    assert np.all(np.diff(slow.clock(t)) > 0)  # time never runs back
+    assert slow.focal(10.0) == pytest.approx(plain.focal(10.0))
+
+
+def test_patrol_pans_far_tilts_little_and_dwells() -> None:
+    """patrol: pan from -A to +A and back, the tilt's small wave beside it, the head still for `dwell`
+    seconds at each turn."""
+    p = _profile(
+        corner_shift=0.0, motion="patrol", pan_amplitude=np.radians(30.0), tilt_amplitude=np.radians(1.5),
+        pan_cycles=2.0, tilt_cycles=1.0, dwell=1.0, period=20.0,
+    )  # fmt: skip
+    t = np.linspace(0.0, 20.0, 2001)
+    pan, tilt = p.pan_tilt(t)
+    assert np.degrees(pan[0]) == pytest.approx(-30.0) and np.degrees(pan.max()) == pytest.approx(30.0)
+    assert np.degrees(np.abs(tilt).max()) == pytest.approx(1.5, rel=1e-3)
+    moving = np.hypot(np.diff(pan), np.diff(tilt)) > 1e-12
+    assert (~moving).sum() == pytest.approx(3 * 100, abs=3)  # three turns (not at the ends), 1 s each
+    still = np.flatnonzero(~moving)
+    assert np.allclose(np.degrees(np.abs(pan[still])), 30.0)  # it holds at the turns
+    with pytest.raises(ValueError, match="dwell"):
+        _profile(motion="patrol", pan_cycles=2.0, dwell=4.0, period=10.0)

@@ -42,6 +42,8 @@ _PAD = 4
 ASPECT_TOLERANCE = 0.02
 # Sony VISCA-style zoom encoder range (0 = wide end, 0x4000 = tele end).
 ZOOM_COUNTS_MAX = 16384.0
+MOTIONS = ("sweep", "circle", "patrol")
+ZOOM_LAWS = ("cosine", "linear")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -207,10 +209,19 @@ class CameraProfile:
     """Pan/tilt path, zoom profile and lens of a synthetic PTZ camera over one sequence.
 
     Time t in seconds from the first frame; period = the sequence length (first to last frame).
-    - pan(t) = A_pan * wave(pan_cycles * t / period), tilt(t) = A_tilt * wave(tilt_cycles * t / period),
-      wave = sin(2 pi s) or the triangle wave of the same period and phase.
-    - zoom ratio z(t) = zoom_max ** ((1 - cos(2 pi t / period)) / 2): 1 -> zoom_max -> 1, geometric
-      (constant relative zoom speed at the ends), monotone on each half; f(t) = f_wide z(t).
+    - motion "sweep": pan(t) = A_pan * wave(pan_cycles * t / period), tilt(t) = A_tilt *
+      wave(tilt_cycles * t / period), wave = sin(2 pi s) or the triangle wave of the same period and phase.
+    - motion "circle" (section 4.1): the principal ray on a cone of half angle circle_radius about the
+      world +z axis, phase phi = 2 pi t / circle_period from the +x side (circle_period 0 = period).
+    - motion "patrol": pan -A_pan cos(2 pi pan_cycles u) (from -A_pan to +A_pan and back), tilt
+      A_tilt wave(tilt_cycles u), u = the fraction of moving time: the head holds still for `dwell`
+      seconds at every turn of the pan (not at the start or the end).
+    - pan_centre is added to every pan (a rotation about the vertical: a circle stays a circle).
+    - zoom_law "cosine": zoom ratio z(t) = zoom_max ** ((1 - cos(2 pi t / period)) / 2): 1 -> zoom_max
+      -> 1, geometric (constant relative zoom speed at the ends), monotone on each half; "linear" (4.1):
+      z(t) = 1 + (zoom_max - 1) t / period, f_wide -> f_wide zoom_max. f(t) = f_wide z(t).
+    - slow_start S > 0: the whole path (motion and zoom) is played on a clock whose speed ramps up as
+      (t / S)^2 over the first S seconds and is constant after, scaled to end where it would have.
     - principal point = image centre ((w-1)/2, (h-1)/2) + pp_offset + pp_drift * (z - 1)/(zoom_max - 1).
     - division-model lam(f) such that the corner moves by corner_shift * f_wide / f of the half-diagonal
       (positive = barrel), i.e. the distortion shrinks as 1/f.
@@ -229,26 +240,82 @@ class CameraProfile:
     pp_offset: tuple[float, float] = (15.0, -10.0)
     pp_drift: tuple[float, float] = (0.0, 0.0)
     corner_shift: float = 0.0
+    motion: str = "sweep"
+    circle_radius: float = 0.0  # radians
+    circle_period: float = 0.0  # seconds per turn; 0 = period
+    dwell: float = 0.0  # seconds
+    pan_centre: float = 0.0  # radians
+    zoom_law: str = "cosine"
+    slow_start: float = 0.0  # seconds
 
     def __post_init__(self) -> None:
         if self.waveform not in ("sine", "triangle"):
             raise ValueError(f"unknown waveform {self.waveform!r} (sine or triangle)")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"unknown motion {self.motion!r} ({', '.join(MOTIONS)})")
+        if self.zoom_law not in ZOOM_LAWS:
+            raise ValueError(f"unknown zoom law {self.zoom_law!r} ({', '.join(ZOOM_LAWS)})")
         if not (self.zoom_max >= 1.0 and self.f_wide > 0.0 and self.period > 0.0):
             raise ValueError("need zoom_max >= 1, f_wide > 0 and period > 0")
+        if not (self.dwell >= 0.0 and self.slow_start >= 0.0 and self.circle_period >= 0.0):
+            raise ValueError("need dwell, slow_start and circle_period >= 0")
+        if self.motion == "patrol" and self._moving_time() <= 0.0:
+            raise ValueError("the patrol's dwells leave no time to move")
 
     def _wave(self, s: Array) -> Array:
         if self.waveform == "sine":
             return np.sin(2.0 * np.pi * s)
         return 2.0 / np.pi * np.arcsin(np.sin(2.0 * np.pi * s))  # triangle, same phase as sin
 
+    def clock(self, t: ArrayLike) -> Array:
+        """The path's own time at real time t: t itself, or the slow start's ramped clock."""
+        t = np.asarray(t, dtype=float)
+        if self.slow_start <= 0.0:
+            return t
+        S = self.slow_start
+
+        def ramp(x: Array) -> Array:  # speed (x / S)^2 up to S, then 1
+            return np.where(x < S, x**3 / (3.0 * S * S), x - 2.0 * S / 3.0)
+
+        return ramp(t) * (self.period / float(ramp(np.asarray(self.period))))
+
+    def _turns(self) -> Array:
+        """Moving-time fractions u_k = k / (2 pan_cycles) < 1 at which the patrol's pan turns."""
+        if self.pan_cycles <= 0.0:
+            return np.zeros(0)
+        k = np.arange(1, int(np.ceil(2.0 * self.pan_cycles)) + 1)
+        u = k / (2.0 * self.pan_cycles)
+        return u[u < 1.0 - 1e-9]
+
+    def _moving_time(self) -> float:
+        return self.period - self.dwell * len(self._turns())
+
+    def _patrol_fraction(self, t: Array) -> Array:
+        """u(t): the fraction of the sequence's moving time spent by time t (constant in a dwell)."""
+        T = self._moving_time()
+        starts = self._turns() * T + self.dwell * np.arange(len(self._turns()))
+        held = sum((np.clip(t - s, 0.0, self.dwell) for s in starts), np.zeros_like(t))
+        return (t - held) / T
+
     def pan_tilt(self, t: ArrayLike) -> tuple[Array, Array]:
-        s = np.asarray(t, dtype=float) / self.period
-        return self.pan_amplitude * self._wave(self.pan_cycles * s), self.tilt_amplitude * self._wave(
-            self.tilt_cycles * s
-        )
+        t = self.clock(t)
+        if self.motion == "circle":
+            phase = 2.0 * np.pi * t / (self.circle_period or self.period)
+            pan, tilt = cone_pan_tilt(phase, self.circle_radius)
+        elif self.motion == "patrol":
+            u = self._patrol_fraction(t)
+            pan = -self.pan_amplitude * np.cos(2.0 * np.pi * self.pan_cycles * u)
+            tilt = self.tilt_amplitude * self._wave(self.tilt_cycles * u)
+        else:
+            s = t / self.period
+            pan = self.pan_amplitude * self._wave(self.pan_cycles * s)
+            tilt = self.tilt_amplitude * self._wave(self.tilt_cycles * s)
+        return (pan + self.pan_centre if self.pan_centre else pan), tilt
 
     def zoom_ratio(self, t: ArrayLike) -> Array:
-        s = np.asarray(t, dtype=float) / self.period
+        s = self.clock(t) / self.period
+        if self.zoom_law == "linear":
+            return 1.0 + (self.zoom_max - 1.0) * np.clip(s, 0.0, 1.0)
         return self.zoom_max ** (0.5 * (1.0 - np.cos(2.0 * np.pi * s)))
 
     def focal(self, t: ArrayLike) -> Array:
@@ -298,6 +365,17 @@ class CameraState:
 
     def R(self, i: int) -> Array:
         return ptz_rotation(float(self.pan[i]), float(self.tilt[i]))
+
+
+def cone_pan_tilt(phase: ArrayLike, radius: float) -> tuple[Array, Array]:
+    """Head pan and tilt whose optical axis lies on a cone of half angle `radius` about world +z.
+
+    The axis is (sin r cos phase, -sin r sin phase, cos r): phase 0 on the +x (pan) side, then upwards
+    (tilt positive = -y) as the phase grows.
+    """
+    phase = np.asarray(phase, dtype=float)
+    x, y, z = np.sin(radius) * np.cos(phase), -np.sin(radius) * np.sin(phase), np.cos(radius)
+    return np.arctan2(x, z), np.arctan2(-y, np.hypot(x, z))
 
 
 def focal_from_hfov(width: int, hfov_deg: float) -> float:

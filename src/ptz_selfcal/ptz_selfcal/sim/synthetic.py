@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation, reference_homographies
 from ptz_selfcal.camera.intrinsics import image_centre
 from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.sim.render import cone_pan_tilt
 
 Array = NDArray[np.float64]
 
@@ -71,13 +72,7 @@ class SyntheticSequence:
 def circle_rotations(n_frames: int, radius_deg: float) -> Array:
     """(n, 3, 3) world-to-camera rotations whose principal ray runs once round a cone about world +z."""
     phi = 2.0 * np.pi * np.arange(n_frames) / n_frames
-    theta = np.radians(radius_deg)
-    # Optical axis on the cone (tilt positive = up = -y), converted to the head's pan and tilt.
-    axis = np.column_stack(
-        [np.sin(theta) * np.cos(phi), -np.sin(theta) * np.sin(phi), np.full(n_frames, np.cos(theta))]
-    )
-    pan = np.arctan2(axis[:, 0], axis[:, 2])
-    tilt = np.arctan2(-axis[:, 1], np.hypot(axis[:, 0], axis[:, 2]))
+    pan, tilt = cone_pan_tilt(phi, np.radians(radius_deg))  # the renderer's circle (synth --motion circle)
     return np.array([ptz_rotation(p, t) for p, t in zip(pan, tilt)])
 
 
