@@ -289,3 +289,69 @@ def test_namespace_and_sqlite3(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
     assert names["/cam1/ptz/image_raw/compressed"] == 3 and names["/cam1/ptz/ground_truth/camera_info"] == 3
     assert all(n.startswith("/cam1/ptz/") for n in names) and len(names) == 4
     assert any(p.suffix == ".db3" for p in out.iterdir())
+
+
+def _synth_argv(monkeypatch: pytest.MonkeyPatch, *argv: str) -> int:
+    argv = ("synth", str(PANORAMA), *argv, "--quiet")
+    monkeypatch.setattr(sys, "argv", ["ptz-selfcal", *argv])
+    return cli.main(list(argv))
+
+
+def test_paper_configuration_is_the_papers_sequence(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--paper-config A (section 4.1): 30 frames of 640x480 mono8 at 2 fps, the principal ray on a 5 deg
+    circle, f linear from 800 to 1400 px, the principal point at the image centre; all in the ground
+    truth of every frame."""
+    out = tmp_path / "paper_a"
+    assert _synth_argv(monkeypatch, str(out), "--paper-config", "A") == 0
+    msgs = read_bag(out)
+    images = msgs["/ptz/image_raw"]
+    assert len(images) == 30 and {(m.encoding, m.width, m.height) for _, m in images} == {("mono8", 640, 480)}
+    assert [stamp_ns(m) for _, m in images] == [START_NS + i * 500_000_000 for i in range(30)]
+    K = np.array([np.asarray(m.k).reshape(3, 3) for _, m in msgs["/ptz/ground_truth/camera_info"]])
+    np.testing.assert_allclose(K[:, 0, 0], np.linspace(800.0, 1400.0, 30), rtol=1e-12)
+    np.testing.assert_allclose(K[:, :2, 2], np.tile([319.5, 239.5], (30, 1)), atol=1e-12)
+    js = [m.position for _, m in msgs["/ptz/ground_truth/joint_states"]]
+    axes = np.array([ptz_rotation(p[0], p[1])[2] for p in js])  # principal ray in the world
+    np.testing.assert_allclose(np.degrees(np.arccos(axes[:, 2])), 5.0, atol=1e-9)
+    phase = np.unwrap(np.arctan2(-axes[:, 1], axes[:, 0]))
+    np.testing.assert_allclose(np.diff(phase), 2.0 * np.pi / 30, atol=1e-9)  # once round, evenly
+    params = yaml.safe_load((out / "synth_params.yaml").read_text())["profile"]
+    assert (params["motion"], params["paper_config"], params["circle_radius_deg"]) == ("circle", "A", 5.0)
+
+
+def test_paper_configuration_b_with_overrides(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Options given beside a preset win; B is 3.5 deg and f 1200 -> 2000 px whatever the frame count."""
+    out = tmp_path / "paper_b"
+    argv = ["--paper-config", "B", "--frames", "6", "--format", "jpeg", "--pp-drift", "4", "2"]
+    assert _synth_argv(monkeypatch, str(out), *argv) == 0
+    msgs = read_bag(out)
+    assert len(msgs["/ptz/image_raw/compressed"]) == 6
+    K = np.array([np.asarray(m.k).reshape(3, 3) for _, m in msgs["/ptz/ground_truth/camera_info"]])
+    np.testing.assert_allclose(K[:, 0, 0], np.linspace(1200.0, 2000.0, 6), rtol=1e-12)
+    np.testing.assert_allclose(K[-1, :2, 2] - K[0, :2, 2], [4.0, 2.0], atol=1e-9)  # drift at f_tele
+    js = [m.position for _, m in msgs["/ptz/ground_truth/joint_states"]]
+    axes = np.array([ptz_rotation(p[0], p[1])[2] for p in js])
+    np.testing.assert_allclose(np.degrees(np.arccos(axes[:, 2])), 3.5, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--f-tele", "900", "--zoom-max", "2"], "not both"),
+        (["--f-wide", "800", "--f-tele", "700"], "--f-tele"),
+        (["--slow-start", "5"], "--slow-start"),
+        (["--motion", "patrol", "--pan-cycles", "2", "--dwell", "0.3"], "dwell"),
+        (["--motion", "circle", "--circle-radius-deg", "0"], "--circle-radius-deg"),
+    ],
+)
+def test_absurd_motion_options(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture,
+    args: list[str],
+    message: str,
+) -> None:
+    assert synth(monkeypatch, tmp_path / "bag", *args) == 2  # 20 frames at 30 fps: 0.63 s long
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ptz-selfcal synth: error:") and message in err and "\n" not in err
+    assert list(tmp_path.iterdir()) == []

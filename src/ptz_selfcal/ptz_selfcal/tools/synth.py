@@ -38,6 +38,8 @@ import numpy as np
 from ptz_selfcal import topics
 from ptz_selfcal.camera.distortion import PLUMB_BOB
 from ptz_selfcal.sim.render import (
+    MOTIONS,
+    ZOOM_LAWS,
     CameraProfile,
     CameraState,
     EncoderModel,
@@ -49,6 +51,7 @@ from ptz_selfcal.sim.render import (
     is_equirectangular,
     render_view,
 )
+from ptz_selfcal.sim.synthetic import CONFIGURATIONS
 from ptz_selfcal.tools.cli import CliError
 
 FORMATS = ("jpeg", "png", "mono8", "bgr8")
@@ -64,10 +67,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("panorama", help="equirectangular image (width = 2 x height), e.g. a 360 panorama")
     parser.add_argument("out_bag", help="new bag directory (refuses an existing path)")
     g = parser.add_argument_group("sequence")
-    g.add_argument("--frames", type=int, default=300, help="number of images (default 300)")
-    g.add_argument("--width", type=int, default=1280, help="image width in pixels (default 1280)")
-    g.add_argument("--height", type=int, default=720, help="image height in pixels (default 720)")
-    g.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    g.add_argument(
+        "--paper-config", choices=sorted(CONFIGURATIONS),
+        help="the paper's section 4.1 sequence: A = 5 deg circle, f 800 -> 1400 px; B = 3.5 deg, "
+        "f 1200 -> 2000 px; both 30 frames of 640x480 mono8 at 2 fps, principal point at the centre, "
+        "f linear in time (options given explicitly override these)",
+    )  # fmt: skip
+    g.add_argument("--frames", type=int, help="number of images (default 300)")
+    g.add_argument("--width", type=int, help="image width in pixels (default 1280)")
+    g.add_argument("--height", type=int, help="image height in pixels (default 720)")
+    g.add_argument("--fps", type=float, help="frame rate (default 30)")
     g.add_argument("--start-time", type=float, default=DEFAULT_START, help="first image stamp, seconds")
     g = parser.add_argument_group("camera motion and lens")
     g.add_argument("--f-wide", type=float, help="focal length at the wide end, pixels (default: from --hfov)")
@@ -76,14 +85,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--hfov", type=float, default=DEFAULT_HFOV,
         help=f"horizontal field of view at the wide end, deg (default {DEFAULT_HFOV:g})",
     )  # fmt: skip
-    g.add_argument("--zoom-max", type=float, default=3.0, help="largest zoom ratio (1 -> max -> 1)")
+    g.add_argument("--zoom-max", type=float, help="largest zoom ratio (default 3)")
+    g.add_argument(
+        "--f-tele", type=float, help="focal length at the tele end, pixels (instead of --zoom-max)"
+    )
+    g.add_argument(
+        "--zoom-law", choices=ZOOM_LAWS,
+        help="cosine: f_wide -> f_tele -> f_wide, geometric (default); linear: f_wide -> f_tele in time",
+    )  # fmt: skip
+    g.add_argument(
+        "--motion", choices=MOTIONS,
+        help="sweep: pan and tilt waves (default); circle: the principal ray on a circle (section 4.1); "
+        "patrol: pan from -amplitude to +amplitude and back, tilt a small wave, --dwell at each turn",
+    )  # fmt: skip
+    g.add_argument("--circle-radius-deg", type=float, help="circle radius, deg (default 5)")
+    g.add_argument("--circle-turns", type=float, default=1.0, help="turns of the circle over the sequence")
+    g.add_argument("--dwell", type=float, default=0.0, help="patrol: seconds held at every pan turn")
+    g.add_argument(
+        "--slow-start", type=float, default=0.0, metavar="SECONDS",
+        help="the path's speed ramps up as (t / SECONDS)^2 over the first SECONDS (default 0: none)",
+    )  # fmt: skip
+    g.add_argument("--pan-centre", type=float, default=0.0, help="pan added to the whole path, deg")
     g.add_argument("--pan-amplitude", type=float, default=40.0, help="pan amplitude, degrees (default 40)")
     g.add_argument("--tilt-amplitude", type=float, default=8.0, help="tilt amplitude, degrees (default 8)")
-    g.add_argument("--pan-cycles", type=float, default=1.0, help="pan periods over the sequence")
+    g.add_argument(
+        "--pan-cycles", type=float, default=1.0, help="pan periods (patrol: rounds) over the sequence"
+    )
     g.add_argument("--tilt-cycles", type=float, default=2.0, help="tilt periods over the sequence")
     g.add_argument("--waveform", choices=("sine", "triangle"), default="sine", help="pan/tilt path shape")
     g.add_argument(
-        "--pp-offset", type=float, nargs=2, default=(15.0, -10.0), metavar=("DX", "DY"),
+        "--pp-offset", type=float, nargs=2, metavar=("DX", "DY"),
         help="principal point offset from the image centre, pixels (default 15 -10)",
     )  # fmt: skip
     g.add_argument(
@@ -108,7 +139,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="zoom ratio of the lens over the full 0..16384 encoder range (default 20)",
     )  # fmt: skip
     g = parser.add_argument_group("images")
-    g.add_argument("--format", choices=FORMATS, default="jpeg", help="image encoding (default jpeg)")
+    g.add_argument("--format", choices=FORMATS, help="image encoding (default jpeg)")
     g.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality 1..100 (default 90)")
     g.add_argument("--image-noise", type=float, default=2.0, help="Gaussian noise sigma, grey levels")
     g.add_argument("--brightness-drift", type=float, default=0.10, help="gain amplitude (0.10 = +-10%%)")
@@ -140,8 +171,48 @@ def _finite(*values: float) -> bool:
     return all(np.isfinite(v) for v in values)
 
 
+# What an option left unset means, without and with --paper-config (section 4.1; sim/synthetic.py).
+DEFAULTS: dict[str, Any] = {
+    "frames": 300, "width": 1280, "height": 720, "fps": 30.0, "format": "jpeg", "zoom_max": 3.0,
+    "pp_offset": (15.0, -10.0), "motion": "sweep", "zoom_law": "cosine", "circle_radius_deg": 5.0,
+}  # fmt: skip
+
+
+def paper_defaults(config: str) -> dict[str, Any]:
+    radius, f_first, f_last = CONFIGURATIONS[config]
+    return {
+        "frames": 30, "width": 640, "height": 480, "fps": 2.0, "format": "mono8", "pp_offset": (0.0, 0.0),
+        "motion": "circle", "zoom_law": "linear", "circle_radius_deg": radius, "f_wide": f_first,
+        "f_tele": f_last,
+    }  # fmt: skip
+
+
+def resolve(args: argparse.Namespace) -> argparse.Namespace:
+    """Fill the options left unset: the --paper-config preset first, then the plain defaults."""
+    if getattr(args, "resolved", False):
+        return args
+    _check(args.f_tele is None or args.zoom_max is None, "give --f-tele or --zoom-max, not both")
+    preset = paper_defaults(args.paper_config) if args.paper_config else {}
+    if args.zoom_max is not None:
+        preset.pop("f_tele", None)
+    for name, value in {**DEFAULTS, **preset}.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    args.resolved = True
+    return args
+
+
+def _f_wide(args: argparse.Namespace) -> float:
+    return float(args.f_wide if args.f_wide is not None else focal_from_hfov(args.width, args.hfov))
+
+
+def _zoom_max(args: argparse.Namespace) -> float:
+    return float(args.zoom_max if args.f_tele is None else args.f_tele / _f_wide(args))
+
+
 def validate(args: argparse.Namespace) -> None:
     """One-line CliError for every absurd option (before any work is done)."""
+    resolve(args)
     _check(args.frames >= 2, f"--frames must be at least 2, got {args.frames}")
     _check(args.frames <= 1_000_000, f"--frames must be at most 1000000, got {args.frames}")
     _check(16 <= args.width <= 16384 and 16 <= args.height <= 16384, "--width/--height must be in 16..16384")
@@ -150,11 +221,15 @@ def validate(args: argparse.Namespace) -> None:
     _check(_finite(args.hfov) and 1.0 <= args.hfov <= 170.0, f"--hfov must be in [1, 170], got {args.hfov}")
     if args.f_wide is not None:
         _check(_finite(args.f_wide) and args.f_wide > 1.0, f"--f-wide must be > 1 pixel, got {args.f_wide}")
+    if args.f_tele is not None:
+        _check(
+            _finite(args.f_tele) and args.f_tele >= _f_wide(args),
+            f"--f-tele must be >= the wide end's focal length {_f_wide(args):g}, got {args.f_tele}",
+        )
+    zoom_max = _zoom_max(args)
     _check(_finite(args.zoom_max) and args.zoom_max >= 1.0, f"--zoom-max must be >= 1, got {args.zoom_max}")
     _check(
-        _finite(args.lens_ratio)
-        and args.lens_ratio >= max(args.zoom_max, 1.0 + 1e-6)
-        and args.lens_ratio > 1.0,
+        _finite(args.lens_ratio) and args.lens_ratio >= max(zoom_max, 1.0 + 1e-6) and args.lens_ratio > 1.0,
         f"--lens-ratio must be > 1 and >= --zoom-max, got {args.lens_ratio}",
     )
     _check(
@@ -166,6 +241,18 @@ def validate(args: argparse.Namespace) -> None:
         f"--tilt-amplitude must be in [0, 60] deg, got {args.tilt_amplitude}",
     )
     _check(_finite(args.pan_cycles, args.tilt_cycles), "--pan-cycles/--tilt-cycles must be finite")
+    _check(
+        _finite(args.circle_radius_deg) and 0.0 < args.circle_radius_deg <= 60.0,
+        f"--circle-radius-deg must be in (0, 60], got {args.circle_radius_deg}",
+    )
+    _check(_finite(args.circle_turns) and args.circle_turns > 0.0, "--circle-turns must be > 0")
+    _check(_finite(args.pan_centre) and abs(args.pan_centre) <= 180.0, "--pan-centre must be in [-180, 180]")
+    period = (args.frames - 1) / args.fps
+    _check(
+        _finite(args.slow_start) and 0.0 <= args.slow_start <= period,
+        f"--slow-start must be in [0, {period:g}] s (the sequence's length), got {args.slow_start}",
+    )
+    _check(_finite(args.dwell) and args.dwell >= 0.0, f"--dwell must be >= 0 s, got {args.dwell}")
     _check(_finite(*args.pp_offset, *args.pp_drift), "--pp-offset/--pp-drift must be finite")
     _check(
         max(map(abs, (*args.pp_offset, *args.pp_drift))) <= 0.25 * min(args.width, args.height),
@@ -192,6 +279,10 @@ def validate(args: argparse.Namespace) -> None:
     )
     _check(args.namespace.startswith("/") and " " not in args.namespace, "--namespace must start with /")
     _check(1 <= args.jobs <= 64, f"--jobs must be in 1..64, got {args.jobs}")
+    try:
+        make_setup(args)
+    except ValueError as exc:  # e.g. a patrol whose dwells fill the sequence
+        raise CliError(str(exc)) from None
 
 
 def _out_path(path: str) -> Path:
@@ -230,14 +321,15 @@ class Setup:
 
 
 def make_setup(args: argparse.Namespace) -> Setup:
-    f_wide = float(args.f_wide if args.f_wide is not None else focal_from_hfov(args.width, args.hfov))
+    resolve(args)
+    f_wide = _f_wide(args)
     period = (args.frames - 1) / args.fps
     profile = CameraProfile(
         width=args.width,
         height=args.height,
         period=period,
         f_wide=f_wide,
-        zoom_max=args.zoom_max,
+        zoom_max=_zoom_max(args),
         pan_amplitude=float(np.radians(args.pan_amplitude)),
         tilt_amplitude=float(np.radians(args.tilt_amplitude)),
         pan_cycles=args.pan_cycles,
@@ -246,6 +338,13 @@ def make_setup(args: argparse.Namespace) -> Setup:
         pp_offset=tuple(args.pp_offset),
         pp_drift=tuple(args.pp_drift),
         corner_shift=args.distortion,
+        motion=args.motion,
+        circle_radius=float(np.radians(args.circle_radius_deg)),
+        circle_period=args.frames / args.fps / args.circle_turns,  # frames evenly spaced round a turn
+        dwell=args.dwell,
+        pan_centre=float(np.radians(args.pan_centre)),
+        zoom_law=args.zoom_law,
+        slow_start=args.slow_start,
     )
     return Setup(
         profile=profile,
@@ -379,10 +478,14 @@ class Topics:
     @classmethod
     def for_args(cls, args: argparse.Namespace) -> Topics:
         ns = args.namespace.rstrip("/")
+
+        def name(topic: str) -> str:  # the default namespace: the bag contract's absolute names
+            return f"{ns}/{topic}" if ns else topics.bag_topic(topic)
+
         names = (topics.JOINT_STATES, topics.GT_CAMERA_INFO, topics.GT_JOINT_STATES)
         if args.format in ("jpeg", "png"):
-            return cls(f"{ns}/{topics.IMAGE_COMPRESSED}", COMPRESSED_TYPE, *(f"{ns}/{n}" for n in names))
-        return cls(f"{ns}/{topics.IMAGE_RAW}", IMAGE_TYPE, *(f"{ns}/{n}" for n in names))
+            return cls(name(topics.IMAGE_COMPRESSED), COMPRESSED_TYPE, *map(name, names))
+        return cls(name(topics.IMAGE_RAW), IMAGE_TYPE, *map(name, names))
 
     def types(self) -> list[tuple[str, str]]:
         return [
@@ -461,6 +564,21 @@ def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) ->
     import yaml
 
     p, z, e, im = setup.profile, setup.zoom, setup.encoders, setup.image_model
+    # the motion's keys only when it is not the plain sweep: older bags' files stay byte-identical
+    motion = {
+        "motion": p.motion, "paper_config": args.paper_config,
+        "circle_radius_deg": args.circle_radius_deg, "circle_period_s": p.circle_period,
+        "circle_law": "principal ray on a cone of circle_radius about world +z, phase 2 pi t / circle_period",
+        "dwell_s": p.dwell, "pan_centre_deg": args.pan_centre, "slow_start_s": p.slow_start,
+        "slow_start_law": "path time r(t) period / r(period), r = t^3 / (3 S^2) for t < S, t - 2 S / 3 after",
+        "f_tele_px": p.f_wide * p.zoom_max,
+    }  # fmt: skip
+    plain = p.motion == "sweep" and p.zoom_law == "cosine" and not (p.slow_start or p.pan_centre)
+    zoom_law = (
+        "z(t) = zoom_max ** ((1 - cos(2 pi t / period)) / 2), f = f_wide z"
+        if p.zoom_law == "cosine"
+        else "z(t) = 1 + (zoom_max - 1) t / period, f = f_wide z"
+    )
     doc = {
         "generator": "ptz-selfcal synth",
         "panorama": {"file": Path(args.panorama).name, "sha256": panorama_sha256},
@@ -469,12 +587,13 @@ def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) ->
         "jpeg_quality": args.jpeg_quality, "interpolation": args.interpolation,
         "profile": {
             "period_s": p.period, "f_wide_px": p.f_wide, "zoom_max": p.zoom_max,
-            "zoom_law": "z(t) = zoom_max ** ((1 - cos(2 pi t / period)) / 2), f = f_wide z",
+            "zoom_law": zoom_law,
             "pan_amplitude_deg": args.pan_amplitude, "tilt_amplitude_deg": args.tilt_amplitude,
             "pan_cycles": p.pan_cycles, "tilt_cycles": p.tilt_cycles, "waveform": p.waveform,
             "pp_offset_px": list(p.pp_offset), "pp_drift_px": list(p.pp_drift),
             "distortion_corner_shift_at_wide": p.corner_shift,
             "distortion_model": "division, lam on radius / fx about the principal point",
+            **({} if plain else motion),
         },
         "zoom_encoder": {
             "law": "counts = 16384 * (ln(f / f_wide) / ln(lens_ratio)) ** exponent",
