@@ -1,8 +1,9 @@
 """`ptz-selfcal mosaic` end to end: a short synthetic bag -> run (real nodes over DDS) -> PNG mosaic.
 
-The mosaic must be the size its longest published focal length asks for (or the cap), 2:1 when
-spherical, and cover what the camera saw: the footprints of the ground-truth views (K and pan/tilt of
-synth), since the command levels the mosaic with the encoders.
+The mosaic must be the size its longest focal length asks for (or the cap), 2:1 when spherical, and
+cover what the camera saw: the footprints of the ground-truth views (K and pan/tilt of synth) of the
+frames it places, since the command levels the mosaic with the encoders. By default it places every
+tracked frame (through the final calibration), with --calibration published the calibrated ones.
 """
 
 from __future__ import annotations
@@ -61,10 +62,14 @@ def _calibrated(data: evaluate.BagData) -> set[int]:
     }
 
 
-def _truth_coverage(out_bag: Path, projection: Projection) -> np.ndarray:
+def _tracked(out_bag: Path) -> set[int]:
+    """Stamps of the frames the command places by default: a homography from the tracker."""
+    return {stamp for stamp, t in mosaic_tool.read_homographies(out_bag).items() if t.H is not None}
+
+
+def _truth_coverage(out_bag: Path, projection: Projection, placed: set[int]) -> np.ndarray:
     """Where the ground-truth views (synth's K, pan and tilt) of the placed frames land on a surface."""
     data = evaluate.read_output_bag(out_bag)
-    placed = _calibrated(data)
     acc = Accumulator(projection, Box(0, projection.width, 0, projection.height), 1)
     for stamp, info in sorted(data.gt_camera_info.items()):
         if stamp not in placed:
@@ -90,9 +95,35 @@ def _placed(stdout: str) -> int:
 
 
 def test_mosaic_of_an_output_bag(bags: tuple[Path, Path], tmp_path: Path) -> None:
+    """The default: every tracked frame, the frames published before the first solve included."""
     out_bag = bags[1]
     out = tmp_path / "pano.png"
     proc = _cli("mosaic", str(out_bag), "--out", str(out), "--quiet")  # the images from the output bag
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = evaluate.read_output_bag(out_bag)
+    tracked = _tracked(out_bag)
+    assert len(tracked - _calibrated(data)) > 0  # frames published before the first solve
+    assert _placed(proc.stdout) == len(tracked) > FRAMES // 2
+    untracked = FRAMES - len(tracked)
+    assert (f"not tracked {untracked}" in proc.stdout) == (untracked > 0), proc.stdout
+    # one mosaic pixel per image pixel at the longest focal length (the true one: within 2 %)
+    f_max = max(float(info.k[0]) for stamp, info in data.gt_camera_info.items() if stamp in tracked)
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.shape[1] == 2 * image.shape[0]
+    assert abs(image.shape[1] / mosaic_width(f_max, 8192) - 1.0) < 0.02
+    covered = image[:, :, 3] > 0
+    truth = _truth_coverage(out_bag, Projection.spherical(image.shape[1]), tracked)
+    assert truth.shape == covered.shape
+    assert _iou(covered, truth) > 0.9
+    # the pixels hold the scene: not a constant, no black holes inside the covered region
+    inner = cv2.erode(covered.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    assert image[:, :, :3][inner].std() > 20 and (image[:, :, :3][inner].max(axis=1) > 0).all()
+
+
+def test_published_calibration_places_the_calibrated_frames(bags: tuple[Path, Path], tmp_path: Path) -> None:
+    out_bag = bags[1]
+    out = tmp_path / "published.png"
+    proc = _cli("mosaic", str(out_bag), "--out", str(out), "--quiet", "--calibration", "published")
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = evaluate.read_output_bag(out_bag)
     valid = {
@@ -106,17 +137,12 @@ def test_mosaic_of_an_output_bag(bags: tuple[Path, Path], tmp_path: Path) -> Non
     assert _placed(proc.stdout) == len(calibrated)
     assert (f"invalid orientation {invalid}" in proc.stdout) == (invalid > 0), proc.stdout
     assert (f"not calibrated {uncalibrated}" in proc.stdout) == (uncalibrated > 0), proc.stdout
-    # one mosaic pixel per image pixel at the longest focal length of the frames placed
+    # one mosaic pixel per image pixel at the longest published focal length of the frames placed
     f_max = max(float(info.k[0]) for stamp, info in data.camera_info.items() if stamp in calibrated)
     image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
     assert image is not None and image.shape == (mosaic_width(f_max, 8192) // 2, mosaic_width(f_max, 8192), 4)
-    covered = image[:, :, 3] > 0
-    truth = _truth_coverage(out_bag, Projection.spherical(image.shape[1]))
-    assert truth.shape == covered.shape
-    assert _iou(covered, truth) > 0.9
-    # the pixels hold the scene: not a constant, no black holes inside the covered region
-    inner = cv2.erode(covered.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
-    assert image[:, :, :3][inner].std() > 20 and (image[:, :, :3][inner].max(axis=1) > 0).all()
+    truth = _truth_coverage(out_bag, Projection.spherical(image.shape[1]), calibrated)
+    assert _iou(image[:, :, 3] > 0, truth) > 0.9
 
 
 def test_cylindrical_mosaic_covers_the_same_longitudes(bags: tuple[Path, Path], tmp_path: Path) -> None:
@@ -129,7 +155,7 @@ def test_cylindrical_mosaic_covers_the_same_longitudes(bags: tuple[Path, Path], 
     assert image is not None and image.shape[1] == 1500 and image.shape[0] < 750
     covered = image[:, :, 3] > 0
     # the cylinder's rows span the latitudes seen: about the truth's, through the same tan(lat) law
-    truth = _truth_coverage(out_bag, Projection.spherical(1500))
+    truth = _truth_coverage(out_bag, Projection.spherical(1500), _tracked(out_bag))
     lat = (0.5 - (np.nonzero(truth.any(axis=1))[0][[0, -1]] + 0.5) / 750) * math.pi
     expected_rows = 1500 / (2 * math.pi) * (math.tan(lat[0]) - math.tan(lat[1]))
     assert abs(image.shape[0] - expected_rows) < 0.1 * expected_rows
@@ -146,5 +172,6 @@ def test_mosaic_of_an_input_bag_runs_the_nodes(bags: tuple[Path, Path], tmp_path
     assert _placed(proc.stdout) > FRAMES // 2
     image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
     assert image is not None and image.shape == (512, 1024, 4)  # 2 pi f is far above the cap
-    assert _iou(image[:, :, 3] > 0, _truth_coverage(out_bag, Projection.spherical(1024))) > 0.9
+    truth = _truth_coverage(out_bag, Projection.spherical(1024), _tracked(out_bag))
+    assert _iou(image[:, :, 3] > 0, truth) > 0.9
     assert math.isclose(image.shape[1] / image.shape[0], 2.0)

@@ -3,14 +3,17 @@
 IN_BAG is either an output bag of `ptz-selfcal run` (it holds ptz/selfcal/camera_info and
 ptz/selfcal/frame; the images come from the same bag or from --input-bag) or an input bag (images and
 encoders), which is first run through the real nodes (tools/run.py) into a temporary directory.
-Each frame is placed through its published K, plumb_bob D and orientation (mosaic/): frames whose
-orientation is the invalid zero quaternion, frames without a calibration and frames of another tracking
-reference than the largest one are skipped and counted, and so are, unless --all-frames, the frames
-published before the first solve (status not calibrated: the prior's K misplaces them, and they ghost
-across the mosaic; when no frame is calibrated every frame is placed). The mosaic is levelled with
-the encoders passed through in FrameCalibration when there are any (pan 0 at the centre, the horizon
-level); otherwise its frame is the calibration's reference. The width gives one mosaic pixel per image pixel
-at the longest focal length seen, capped by --max-width. The PNG is BGRA: alpha 0 where nothing was seen.
+By default (--calibration final) every tracked frame is placed through the run's FINAL calibration
+(mosaic/final.py: K and R re-derived from the last solve through the frame's homography, eq. 20), so the
+frames published before convergence are placed too; frames without a homography
+(tracking lost) and frames of another tracking reference than the one whose final solve places most
+are skipped and counted. --calibration published places each frame through its published K, plumb_bob
+D and orientation instead, skipping the invalid zero quaternion and, unless --all-frames, the frames
+published before the first solve (the prior's K misplaces them and they ghost; when no frame is
+calibrated every frame is placed). The mosaic is levelled with the encoders passed through in
+FrameCalibration when there are any (pan 0 at the centre, the horizon level); otherwise its frame is
+the calibration's reference. The width gives one mosaic pixel per image pixel at the longest focal
+length seen, capped by --max-width. The PNG is BGRA: alpha 0 where nothing was seen.
 """
 
 from __future__ import annotations
@@ -31,11 +34,12 @@ import numpy as np
 from ptz_selfcal import topics
 from ptz_selfcal.camera.geometry import matrix_from_quaternion
 from ptz_selfcal.mosaic.blend import MosaicResult, build_mosaic
+from ptz_selfcal.mosaic.final import FinalFrame, PublishedFrame, final_calibration
 from ptz_selfcal.mosaic.projection import KINDS, SPHERICAL
 from ptz_selfcal.mosaic.warp import FrameView
-from ptz_selfcal.nodes.conversions import STATUS_TO_MSG
+from ptz_selfcal.nodes.conversions import MSG_TO_TRACKING_STATE, STATUS_TO_MSG
 from ptz_selfcal.sim import metrics
-from ptz_selfcal.status import CALIBRATED
+from ptz_selfcal.status import CALIBRATED, HOMOGRAPHY_STATES
 from ptz_selfcal.tools.bagio import BagReader, deserialize, header_stamp_ns
 from ptz_selfcal.tools.cli import CliError
 from ptz_selfcal.tools.evaluate import BagData, read_image_stamps, read_output_bag, run_pipeline
@@ -65,9 +69,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="levelled by the encoders (auto: when present) or in the calibration's reference frame",
     )
     parser.add_argument(
+        "--calibration",
+        choices=("final", "published"),
+        default="final",
+        help="final: every tracked frame through the run's last solve (also the frames published before "
+        "it); published: each frame's own published K and orientation",
+    )
+    parser.add_argument(
         "--all-frames",
         action="store_true",
-        help="also the frames published before the first solve (the prior's K: they ghost)",
+        help="with --calibration published: also the frames published before the first solve (the "
+        "prior's K: they ghost)",
     )
     parser.add_argument("--no-exposure", action="store_true", help="no per-frame gain compensation")
     parser.add_argument("--params", metavar="FILE", help="parameter YAML for the nodes (input bags)")
@@ -90,9 +102,49 @@ def valid_quaternion(q: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(q)) and abs(float(np.linalg.norm(q)) - 1.0) < 1e-3)
 
 
+@dataclass(frozen=True)
+class Tracked:
+    """A frame's HomographyStamped: tracker reference -> frame (None when not tracked), its keyframe."""
+
+    H: np.ndarray | None
+    keyframe_id: int
+
+
+def read_homographies(path: Path) -> dict[int, Tracked]:
+    """The tracker's homographies of an output bag, by frame stamp."""
+    out: dict[int, Tracked] = {}
+    with BagReader(path) as reader:
+        names = [t.name for t in reader.topics() if t.name == topics.bag_topic(topics.HOMOGRAPHY)]
+        for msg in reader.messages(names):
+            m = deserialize(msg.raw, msg.msgtype)
+            h = np.asarray(m.h, dtype=float)
+            ok = MSG_TO_TRACKING_STATE.get(m.state) in HOMOGRAPHY_STATES and h.size == 9
+            ok = ok and bool(np.all(np.isfinite(h)))
+            stamp = int(m.header.stamp.sec) * 1_000_000_000 + int(m.header.stamp.nanosec)
+            out[stamp] = Tracked(h.reshape(3, 3) if ok else None, int(m.keyframe_id))
+    return out
+
+
+def _orientation(fc: Any) -> np.ndarray | None:
+    o = fc.orientation
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    return matrix_from_quaternion(q) if valid_quaternion(q) else None
+
+
+def _intrinsics(info: Any) -> np.ndarray | None:
+    K = np.asarray(info.k, dtype=float).reshape(3, 3)
+    return K if np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 else None
+
+
+def _distortion(info: Any) -> tuple[float, float, float]:
+    d = [float(x) for x in info.d] + [0.0] * 5
+    return (d[0], d[1], d[4])
+
+
 def collect_frames(data: BagData, calibrated_only: bool = False) -> Frames:
-    """Frames with a CameraInfo and a valid orientation, of the tracking reference with most frames
-    (calibrated_only: and a calibrated status, not the prior's K of the frames before the first solve)."""
+    """Frames placed as published: a CameraInfo and a valid orientation, of the tracking reference with
+    most frames (calibrated_only: and a calibrated status, not the prior's K of the frames before the
+    first solve)."""
     frames = Frames()
     stamps = sorted(set(data.image_stamps) | set(data.camera_info) | set(data.frame_calibration))
     candidates = []
@@ -101,32 +153,70 @@ def collect_frames(data: BagData, calibrated_only: bool = False) -> Frames:
         if info is None or fc is None:
             frames.skipped["no calibration"] += 1
             continue
-        o = fc.orientation
-        q = np.array([o.x, o.y, o.z, o.w], dtype=float)
-        if not valid_quaternion(q):
+        R = _orientation(fc)
+        if R is None:
             frames.skipped["invalid orientation"] += 1
             continue
         if calibrated_only and int(fc.status) not in CALIBRATED_STATUS:
             frames.skipped["not calibrated"] += 1
             continue
-        candidates.append((stamp, info, fc, q))
+        candidates.append((stamp, info, fc, R))
     references = Counter(data.reference.get(s, 0) for s, *_ in candidates)
     main_reference = references.most_common(1)[0][0] if references else 0
-    for stamp, info, fc, q in candidates:
+    for stamp, info, fc, R in candidates:
         if data.reference.get(stamp, 0) != main_reference:
             frames.skipped["other reference"] += 1
             continue
-        K = np.asarray(info.k, dtype=float).reshape(3, 3)
-        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+        K = _intrinsics(info)
+        if K is None:
             frames.skipped["no calibration"] += 1
             continue
-        d = [float(x) for x in info.d] + [0.0] * 5
-        R = matrix_from_quaternion(q)
-        frames.stamps.append(stamp)
-        frames.views.append(FrameView(K, (d[0], d[1], d[4]), R, int(info.width), int(info.height)))
-        frames.R_reference.append(R)
-        enc = fc.encoders
-        frames.encoders.append((float(enc.pan), float(enc.tilt)) if enc.valid else (np.nan, np.nan))
+        _append(frames, stamp, FrameView(K, _distortion(info), R, int(info.width), int(info.height)), fc)
+    return frames
+
+
+def _append(frames: Frames, stamp: int, view: FrameView, fc: Any) -> None:
+    frames.stamps.append(stamp)
+    frames.views.append(view)
+    frames.R_reference.append(view.R)
+    enc = fc.encoders
+    frames.encoders.append((float(enc.pan), float(enc.tilt)) if enc.valid else (np.nan, np.nan))
+
+
+def collect_final_frames(data: BagData, tracked: dict[int, Tracked]) -> Frames:
+    """Every tracked frame placed with the run's final calibration (mosaic/final.py), frames published
+    before it included; of the tracking reference whose final solve places most frames."""
+    frames = Frames()
+    groups: dict[int, list[tuple[int, Any, Any, PublishedFrame]]] = {}
+    for stamp in sorted(set(data.image_stamps) | set(data.camera_info) | set(data.frame_calibration)):
+        info, fc, t = data.camera_info.get(stamp), data.frame_calibration.get(stamp), tracked.get(stamp)
+        K = _intrinsics(info) if info is not None else None
+        if K is None or fc is None or t is None:
+            frames.skipped["no calibration"] += 1
+            continue
+        if t.H is None:
+            frames.skipped["not tracked"] += 1
+            continue
+        R = _orientation(fc)
+        calibrated = int(fc.status) in CALIBRATED_STATUS
+        solve = (int(fc.keyframe_count), float(fc.residual))  # one solve's frames share both
+        published = PublishedFrame(t.H, t.keyframe_id, K, R, calibrated, solve)
+        groups.setdefault(data.reference.get(stamp, 0), []).append((stamp, info, fc, published))
+    placed: dict[int, list[FinalFrame | None]] = {}
+    for reference, group in groups.items():
+        size = (int(group[0][1].width), int(group[0][1].height))
+        placed[reference] = final_calibration([g[3] for g in group], size)
+    best = max(placed, key=lambda r: sum(p is not None for p in placed[r]), default=None)
+    for reference, group in groups.items():
+        if reference != best:
+            frames.skipped["other reference"] += len(group)
+            continue
+        for (stamp, info, fc, _), final in zip(group, placed[reference]):
+            if final is None:
+                frames.skipped["no final solve"] += 1
+                continue
+            D = _distortion(group[final.anchor][1])  # the final solve's distortion
+            _append(frames, stamp, FrameView(final.K, D, final.R, int(info.width), int(info.height)), fc)
     return frames
 
 
@@ -249,7 +339,12 @@ def _mosaic_from(output_bag: Path, image_bag: Path, args: argparse.Namespace) ->
         )
     data = BagData(image_stamps=read_image_stamps(image_bag)) if image_bag != output_bag else None
     data = read_output_bag(output_bag, data)
-    frames = collect_frames(data, calibrated_only=not args.all_frames)
+    if args.calibration == "final":
+        frames = collect_final_frames(data, read_homographies(output_bag))
+        if not frames.views:
+            print("mosaic: no final solve to place the frames with: as published", file=sys.stderr)
+    if args.calibration == "published" or not frames.views:
+        frames = collect_frames(data, calibrated_only=not args.all_frames)
     if not frames.views and not args.all_frames:
         print("mosaic: no frame is calibrated, placing every frame with its published K", file=sys.stderr)
         frames = collect_frames(data)
