@@ -1,0 +1,83 @@
+"""The live mosaic: a fixed spherical canvas that each frame updates on its own footprint only.
+
+Memory is the canvas, fixed at construction (one grey byte and one weight byte per mosaic pixel), not
+the frames seen. A frame is warped onto its footprint box (mosaic/warp.py) and blended into a running
+weighted mean there: c <- (c w + p v) / (w + v), with v the frame's feather weight. The stored weight
+saturates at WEIGHT_CAP, so that a pixel seen by many frames still follows the newest views (the scene
+changes; a live background should too).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ptz_selfcal.mosaic.blend import column_runs
+from ptz_selfcal.mosaic.projection import Projection
+from ptz_selfcal.mosaic.warp import Box, FrameView, footprint, footprint_box, warp_frame
+
+# Stored weight of a frame's centre pixel (uint8 units), and the most a pixel accumulates (about four
+# frames: the fifth view of a pixel still moves it by a fifth).
+WEIGHT_UNIT = 64.0
+WEIGHT_CAP = 255.0
+FORMATS = ("jpeg", "png")
+
+
+class LiveMosaic:
+    """An equirectangular (spherical) canvas of `width` x `width` / 2 pixels, grey, in the frame of the
+    orientations it is given."""
+
+    def __init__(self, width: int) -> None:
+        self.projection = Projection.spherical(width)
+        shape = (self.projection.height, self.projection.width)
+        self.grey = np.zeros(shape, np.uint8)
+        self.weight = np.zeros(shape, np.uint8)
+        self.frames = 0
+
+    @property
+    def nbytes(self) -> int:
+        return self.grey.nbytes + self.weight.nbytes
+
+    def reset(self) -> None:
+        """A new mosaic (a new calibration reference: the old orientations mean nothing in it)."""
+        self.grey.fill(0)
+        self.weight.fill(0)
+        self.frames = 0
+
+    def add(self, image: np.ndarray, view: FrameView) -> Box | None:
+        """Blend a grey uint8 image (full size or reduced: K is scaled to it) into its footprint;
+        returns the box it touched (columns unwrapped), None when it faces nothing of the canvas."""
+        box = footprint_box(footprint(view), self.projection)
+        if box.empty:
+            return None
+        warped = warp_frame(image, view, self.projection, box)
+        rows = slice(box.y0, box.y1)
+        W = self.projection.width
+        for src, dst, n in column_runs(box.x0, box.x1, 0, W, W):
+            v = warped.weight[:, src : src + n] * np.float32(WEIGHT_UNIT)
+            seen = v > 0.0
+            if not seen.any():
+                continue
+            p = warped.pixels[:, src : src + n, 0].astype(np.float32)
+            c = self.grey[rows, dst : dst + n]
+            w = self.weight[rows, dst : dst + n].astype(np.float32)
+            total = w + v
+            mean = (c * w + p * v) / np.maximum(total, np.float32(1e-6))
+            c[seen] = np.rint(mean[seen]).astype(np.uint8)
+            self.weight[rows, dst : dst + n][seen] = np.minimum(total[seen], WEIGHT_CAP).astype(np.uint8)
+        self.frames += 1
+        return box
+
+    def encode(self, fmt: str = "jpeg", jpeg_quality: int = 85) -> bytes:
+        """The canvas as JPEG (grey, black where nothing was seen) or PNG (BGRA, alpha 0 there)."""
+        if fmt == "jpeg":
+            ok, data = cv2.imencode(".jpg", self.grey, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        elif fmt == "png":
+            alpha = np.where(self.weight > 0, 255, 0).astype(np.uint8)
+            bgra = np.dstack([self.grey, self.grey, self.grey, alpha])
+            ok, data = cv2.imencode(".png", bgra, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        else:
+            raise ValueError(f"unknown mosaic format {fmt!r} (expected one of {', '.join(FORMATS)})")
+        if not ok:
+            raise ValueError("the mosaic could not be encoded")
+        return data.tobytes()
