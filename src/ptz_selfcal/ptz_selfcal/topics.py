@@ -37,6 +37,7 @@ HOMOGRAPHY = "ptz/selfcal/homography"
 KEYFRAMES = "ptz/selfcal/keyframes"
 CAMERA_INFO = "ptz/selfcal/camera_info"
 FRAME_CALIBRATION = "ptz/selfcal/frame"
+MOSAIC = "ptz/selfcal/mosaic"  # sensor_msgs/CompressedImage: the live mosaic (nodes/mosaic_node.py)
 DIAGNOSTICS = "/diagnostics"
 
 CAMERA_FRAME_ID = "ptz_camera"
