@@ -92,3 +92,41 @@ def test_distortion_error_zero_for_the_equivalent_plumb_bob_and_large_when_ignor
     assert errors[0] < 1.0
     assert errors[1] > 50.0  # 12% of the 734 px half-diagonal, ignored
     assert np.isnan(errors[2])
+
+
+def test_well_posed_frame_needs_two_degrees_about_each_of_two_axes() -> None:
+    """Pan alone is never well posed; the first frame with >= 2 deg of tilt and of pan from the first frame
+    is; NaN frames are skipped."""
+    pan = np.radians(np.linspace(0.0, 10.0, 11))  # 1 deg per frame
+    assert metrics.well_posed_frame(metrics.rotations_from_encoders(pan, np.zeros(11))) is None
+    tilt = np.radians(np.r_[np.zeros(5), np.linspace(0.6, 3.6, 6)])  # 0.6 deg per frame from frame 5
+    R = metrics.rotations_from_encoders(pan, tilt)
+    r = np.degrees(metrics.rotation_vectors_from_first(R))
+    assert np.allclose(r[0], 0.0) and abs(r[3, 1]) == pytest.approx(3.0, rel=1e-3)  # pan: about y
+    assert metrics.well_posed_frame(R) == 8  # tilt 2.4 deg (x), pan 8 deg (y); 1.8 deg at frame 7
+    R[8] = np.nan
+    assert metrics.well_posed_frame(R) == 9
+
+
+def test_figure_start_is_the_later_of_warmup_and_well_posed_plus_settle() -> None:
+    t = np.arange(100) / 10.0  # 10 fps
+    assert metrics.figure_start(t, 10, None) == 10
+    assert metrics.figure_start(t, 10, 2) == 12  # 0.2 s + 1 s = frame 12
+    assert metrics.figure_start(t, 10, 0) == 10
+    assert metrics.figure_start(t, 10, 95) == 100  # nothing left
+    assert metrics.figure_start(np.arange(30) / 2.0, 3, 5) == 7  # 2 fps: well posed + 2 frames
+
+
+def test_sigma_coverage_and_run_level_error() -> None:
+    f_true = np.full(6, 1000.0)
+    f_est = np.array([1001.0, 1002.0, 1010.0, 999.0, np.nan, 1500.0])
+    sigma = np.full(6, 1.0)
+    mask = np.array([True, True, True, True, True, False])
+    assert metrics.sigma_coverage(f_est, f_true, sigma, mask) == pytest.approx(0.75)  # 10 px is > 3 sigma
+    assert np.isnan(metrics.sigma_coverage(f_est, f_true, sigma, np.zeros(6, bool)))
+    run = metrics.run_level_error(f_est, f_true, sigma, mask)
+    assert run["frames"] == 4 and run["error"] == pytest.approx(0.0015)  # median of 1, 2, 10, -1 px
+    assert run["sigma"] == pytest.approx(np.median(1.0 / f_est[:4]))
+    assert run["z"] == pytest.approx(run["error"] / run["sigma"])
+    np.testing.assert_allclose(metrics.signed_focal_errors([990.0], [1000.0]), [-0.01])
+    assert metrics.run_level_error(f_est, f_true, sigma, np.zeros(6, bool))["frames"] == 0

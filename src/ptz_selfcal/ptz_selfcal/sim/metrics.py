@@ -8,6 +8,10 @@
 - coverage: fraction of input images that got a CameraInfo with the same stamp.
 - distortion: `camera.distortion.max_distortion_difference` (principal point error excluded).
 - summaries over all frames and over the frames after the first 10% (warm-up).
+- issue 15's figures: the well-posed frame (the first whose true rotation from the first frame has
+  >= 2 deg about each of the first camera's x (tilt) and y (pan) axes: the rotation vector's components),
+  the frames the accuracy figures are taken over (after the warm-up and after the well-posed frame + 1 s,
+  whichever is later), the 3-sigma coverage of a run and its run-level error in units of its sigma.
 
 Arrays are indexed by input frame; NaN marks "no estimate for this frame" and is left out of the
 statistics (coverage says how many frames had one).
@@ -28,17 +32,25 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 WARMUP_FRACTION = 0.1
+WELL_POSED_DEG = 2.0  # rotation about each of two orthogonal axes (issue 15's definition)
+SETTLE_S = 1.0  # figures start this long after the well-posed frame
+COVERAGE_SIGMAS = 3.0
 
 
 # --------------------------------------------------------------------------------------------------
 # Per-frame errors
 # --------------------------------------------------------------------------------------------------
-def focal_errors(f_est: ArrayLike, f_true: ArrayLike) -> Array:
-    """|f_est - f_true| / f_true per frame (a fraction, not a percentage)."""
+def signed_focal_errors(f_est: ArrayLike, f_true: ArrayLike) -> Array:
+    """(f_est - f_true) / f_true per frame (a fraction, not a percentage)."""
     f_est = np.asarray(f_est, dtype=float)
     f_true = np.asarray(f_true, dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.abs(f_est - f_true) / f_true
+        return (f_est - f_true) / f_true
+
+
+def focal_errors(f_est: ArrayLike, f_true: ArrayLike) -> Array:
+    """|f_est - f_true| / f_true per frame (a fraction, not a percentage)."""
+    return np.abs(signed_focal_errors(f_est, f_true))
 
 
 def principal_point_errors(pp_est: ArrayLike, pp_true: ArrayLike) -> Array:
@@ -162,6 +174,88 @@ def pan_tilt_path(R: ArrayLike) -> Array:
         if np.isfinite(Ri).all():
             out[i] = np.degrees(pan_tilt_from_rotation(Ri))
     return out
+
+
+# --------------------------------------------------------------------------------------------------
+# When the problem is well posed, and how honest a run's stated uncertainty is (issue 15)
+# --------------------------------------------------------------------------------------------------
+def rotation_vectors_from_first(R: ArrayLike) -> Array:
+    """(n, 3) rotation vectors (radians) of R_j R_0^T, in the first camera's axes (x = tilt, y = pan).
+
+    R are world-to-camera rotations; NaN rows stay NaN (the first finite frame is the reference).
+    """
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    out = np.full((len(R), 3), np.nan)
+    ok = np.isfinite(R).all(axis=(1, 2))
+    if ok.any():
+        rel = np.einsum("nij,kj->nik", R[ok], R[np.flatnonzero(ok)[0]])
+        out[ok] = Rotation.from_matrix(rel).as_rotvec()
+    return out
+
+
+def well_posed_frame(R: ArrayLike, min_angle_deg: float = WELL_POSED_DEG) -> int | None:
+    """The first frame whose rotation from the first frame has >= min_angle about each of the first
+    camera's x and y axes (rotation-vector components); None when no frame has."""
+    r = np.abs(rotation_vectors_from_first(R))
+    with np.errstate(invalid="ignore"):
+        hit = np.flatnonzero((r[:, :2] >= np.radians(min_angle_deg)).all(axis=1))
+    return int(hit[0]) if len(hit) else None
+
+
+def first_frame(mask: ArrayLike) -> int | None:
+    """Index of the first True, None when there is none."""
+    hit = np.flatnonzero(np.asarray(mask, bool))
+    return int(hit[0]) if len(hit) else None
+
+
+def figure_start(
+    times_s: ArrayLike, n_warmup: int, well_posed: int | None, settle_s: float = SETTLE_S
+) -> int:
+    """First frame of the accuracy figures: after the warm-up and after the well-posed frame + settle_s,
+    whichever is later (the warm-up alone when the motion is never well posed)."""
+    t = np.asarray(times_s, dtype=float)
+    if well_posed is None:
+        return int(n_warmup)
+    late = np.flatnonzero(t >= t[well_posed] + settle_s - 1e-9)
+    return max(int(n_warmup), int(late[0]) if len(late) else len(t))
+
+
+def sigma_coverage(
+    f_est: ArrayLike, f_true: ArrayLike, sigma_f: ArrayLike, mask: ArrayLike, k: float = COVERAGE_SIGMAS
+) -> float:
+    """Share of the masked frames with |f_est - f| <= k sigma_f (NaN when none is masked)."""
+    e = np.abs(np.asarray(f_est, float) - np.asarray(f_true, float))
+    sel = np.asarray(mask, bool) & np.isfinite(e)
+    if not sel.any():
+        return float("nan")
+    with np.errstate(invalid="ignore"):
+        return float(np.mean(e[sel] <= k * np.asarray(sigma_f, float)[sel]))
+
+
+def run_level_error(
+    f_est: ArrayLike, f_true: ArrayLike, sigma_f: ArrayLike, mask: ArrayLike
+) -> dict[str, float]:
+    """A run's focal error as one number and its stated 1-sigma, both relative (section 6.2: the error
+    of a sequence is largely one common scale): the medians of (f_est - f) / f and of sigma_f / f_est
+    over the masked frames, and z = error / sigma (across seeds, |z| <= 3 should hold 99.7% of the
+    time when sigma is honest)."""
+    f_est = np.asarray(f_est, float)
+    rel = signed_focal_errors(f_est, f_true)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel_sigma = np.asarray(sigma_f, float) / f_est
+    sel = np.asarray(mask, bool) & np.isfinite(rel) & np.isfinite(rel_sigma)
+    if not sel.any():
+        nan = float("nan")
+        return {"error": nan, "sigma": nan, "z": nan, "frames": 0}
+    error, sigma = float(np.median(rel[sel])), float(np.median(rel_sigma[sel]))
+    return {
+        "error": error,
+        "sigma": sigma,
+        "z": error / sigma if sigma > 0 else float("nan"),
+        "frames": int(sel.sum()),
+    }
 
 
 # --------------------------------------------------------------------------------------------------

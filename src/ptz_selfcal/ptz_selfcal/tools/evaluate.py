@@ -8,6 +8,11 @@
    them (synthetic bags); otherwise rotations from the encoders passed through in FrameCalibration
    (pan/tilt, the section 7 metric) and no intrinsics truth.
 4. D/report.json, a printed table and D/focal.png, D/principal_point.png, D/pan_tilt.png.
+5. report["figures"] (issue 15, from the ground truth; sim/metrics.py): the well-posed frame, the first
+   calibrated frame (CALIBRATING or CONVERGED) and their times; focal, principal point and distortion
+   errors over the frames after the warm-up and after the well-posed frame + 1 s, whichever is later;
+   the share of CONVERGED frames more than 1 % off; the share of CONVERGED frames within 3 sigma_f; the
+   run-level error over sigma (for coverage across seeds).
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ from ptz_selfcal.tools.report import format_table, write_json, write_plots
 
 # FrameCalibration.status values whose orientation is a calibrated estimate
 _CALIBRATED = tuple(sorted(STATUS_TO_MSG[s] for s in CALIBRATED))
+_CONVERGED = STATUS_TO_MSG[CalibrationStatus.CONVERGED]
+CONVERGED_OFF = 0.01  # a CONVERGED frame further off than this is a broken promise (issue 15)
 _IMAGE_TOPICS = tuple(topics.bag_topic(t) for t in (topics.IMAGE_COMPRESSED, topics.IMAGE_RAW))
 
 
@@ -188,6 +195,7 @@ def evaluate(
     K_est = np.full((n, 3, 3), np.nan)
     D_est = np.full((n, 5), np.nan)
     status = np.full(n, -1)
+    sigma_f = np.full(n, np.nan)
     R_est = np.full((n, 3, 3), np.nan)
     enc = np.full((n, 2), np.nan)
     K_true = np.full((n, 3, 3), np.nan)
@@ -207,6 +215,7 @@ def evaluate(
         fc = data.frame_calibration.get(stamp)
         if fc is not None:
             status[i] = int(fc.status)
+            sigma_f[i] = float(fc.sigma_f)
             q = np.array([fc.orientation.x, fc.orientation.y, fc.orientation.z, fc.orientation.w])
             if status[i] in _CALIBRATED and abs(np.linalg.norm(q) - 1.0) < 1e-3:
                 R_est[i] = matrix_from_quaternion(q)
@@ -256,17 +265,15 @@ def evaluate(
     }
     report["status_counts"]["NO_OUTPUT"] = int((status < 0).sum())
     m = report["metrics"]
+    focal = principal_point = distortion = np.full(n, np.nan)
     if have_k_truth:
-        m["focal_error"] = metrics.summarise_split(
-            metrics.focal_errors(K_est[:, 0, 0], K_true[:, 0, 0]), warmup
-        )
-        m["principal_point_error_px"] = metrics.summarise_split(
-            metrics.principal_point_errors(K_est[:, :2, 2], K_true[:, :2, 2]), warmup
-        )
+        focal = metrics.focal_errors(K_est[:, 0, 0], K_true[:, 0, 0])
+        principal_point = metrics.principal_point_errors(K_est[:, :2, 2], K_true[:, :2, 2])
+        m["focal_error"] = metrics.summarise_split(focal, warmup)
+        m["principal_point_error_px"] = metrics.summarise_split(principal_point, warmup)
         if width > 0 and height > 0:
-            m["distortion_error_px"] = metrics.summarise_split(
-                metrics.distortion_errors(dist_est, dist_true, width, height), warmup
-            )
+            distortion = metrics.distortion_errors(dist_est, dist_true, width, height)
+            m["distortion_error_px"] = metrics.summarise_split(distortion, warmup)
     valid_rot = np.isfinite(R_est).all(axis=(1, 2)) & np.isfinite(R_ref).all(axis=(1, 2))
     pairs = metrics.frame_pairs(n, pair_stride, pair_partners, valid=valid_rot, segments=segment)
     if len(pairs):
@@ -278,6 +285,16 @@ def evaluate(
             "count": len(pairs),
         }
     report["frames"]["with_orientation"] = int(valid_rot.sum())
+    times = (np.asarray(frames, dtype=np.int64) - frames[0]) * 1e-9
+    report["figures"] = figures(
+        times, status, sigma_f, K_est[:, 0, 0], K_true[:, 0, 0], R_ref, warmup,
+        {
+            "focal_error": focal,
+            "principal_point_error_px": principal_point,
+            "distortion_error_px": distortion,
+        },
+    )  # fmt: skip
+    report["figures"]["rotation_truth"] = rot_source
 
     # pan/tilt path: estimated orientation aligned (per tracking reference) to the truth
     pan_tilt_est = np.full((n, 2), np.nan)
@@ -306,6 +323,89 @@ def evaluate(
         "calibrator_frame_ms_p95": float(timing) if timing is not None else None,
     }
     return report, series
+
+
+def figures(
+    times: np.ndarray,
+    status: np.ndarray,
+    sigma_f: np.ndarray,
+    f_est: np.ndarray,
+    f_true: np.ndarray,
+    R_true: np.ndarray,
+    warmup: int,
+    errors: dict[str, np.ndarray],
+) -> dict[str, Any]:
+    """Issue 15's figures of one run (sim/metrics.py defines each; None / NaN where undefined)."""
+    well_posed = metrics.well_posed_frame(R_true)
+    calibrated = metrics.first_frame(np.isin(status, _CALIBRATED))
+    start = metrics.figure_start(times, warmup, well_posed)
+    converged = status == _CONVERGED
+    off = metrics.focal_errors(f_est, f_true) > CONVERGED_OFF
+    n_conv = int(converged.sum())
+
+    def at(i: int | None) -> float | None:
+        return None if i is None else float(times[i])
+
+    out: dict[str, Any] = {
+        "well_posed_frame": well_posed,
+        "well_posed_time_s": at(well_posed),
+        "first_calibrated_frame": calibrated,
+        "first_calibrated_time_s": at(calibrated),
+        "frame_interval_s": float(np.median(np.diff(times))) if len(times) > 1 else None,
+        "from_frame": start,
+        "from_time_s": at(start) if start < len(times) else None,
+        **{key: metrics.summarise(v[start:]) for key, v in errors.items()},
+        "converged_frames": n_conv,
+        "converged_off_1pct": int((converged & off).sum()),
+        "converged_off_1pct_share": float((converged & off).sum() / n_conv) if n_conv else None,
+        "sigma3_coverage": metrics.sigma_coverage(f_est, f_true, sigma_f, converged),
+        "run_level": metrics.run_level_error(
+            f_est, f_true, sigma_f, converged & (np.arange(len(times)) >= start)
+        ),
+    }
+    return out
+
+
+def format_figures(report: dict) -> str:
+    """Issue 15's figures as lines under the metrics table."""
+    fig = report.get("figures") or {}
+    if not fig:
+        return ""
+
+    def frame(key: str) -> str:
+        i, t = fig.get(f"{key}_frame"), fig.get(f"{key}_time_s")
+        return "never" if i is None else f"frame {i} ({t:.2f} s)"
+
+    def stat(key: str, name: str, scale: float = 1.0, digits: int = 2) -> str:
+        entry = fig.get(key) or {}
+        return f"{name} {_num(entry.get('median'), scale, digits)} / {_num(entry.get('p90'), scale, digits)}"
+
+    run = fig.get("run_level") or {}
+    share = fig.get("converged_off_1pct_share")
+    return "\n".join(
+        [
+            f"well posed: {frame('well_posed')}; first calibrated: {frame('first_calibrated')}",
+            f"from frame {fig.get('from_frame')} (median / p90): "
+            + ", ".join(
+                [
+                    stat("focal_error", "focal %", 100.0, 3),
+                    stat("principal_point_error_px", "pp px"),
+                    stat("distortion_error_px", "distortion px"),
+                ]
+            ),
+            f"CONVERGED {fig.get('converged_frames', 0)}, "
+            f"of them > 1 % off {fig.get('converged_off_1pct', 0)}"
+            + ("" if share is None else f" ({100.0 * share:.1f} %)")
+            + f"; within 3 sigma_f {_num(fig.get('sigma3_coverage'), 100.0, 1)} %; run-level error "
+            f"{_num(run.get('error'), 100.0, 3)} % = {_num(run.get('z'), 1.0, 2)} sigma",
+        ]
+    )
+
+
+def _num(value: Any, scale: float, digits: int) -> str:
+    if value is None or not np.isfinite(value):
+        return "n/a"
+    return f"{value * scale:.{digits}f}"
 
 
 def _last_calibrator_diagnostics(arrays: list[Any]) -> dict[str, Any]:
@@ -413,6 +513,8 @@ def run(args: argparse.Namespace) -> int:
     report["plots"] = plots
     path = write_json(report, out_dir / "report.json")
     print(format_table(report))
+    if report.get("figures"):
+        print(format_figures(report))
     if damage:
         lost = damage["unreadable_frames"]
         count = "an unknown number of" if lost is None else str(lost)
