@@ -476,8 +476,9 @@ def test_fixed_lens_solves_start_from_the_previous_adjustment() -> None:
 
 def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
     """The same distorted lens calibrated WITHOUT the radial term: f is biased, its sigma_f says
-    nothing about it, and the lens-model check keeps it from CONVERGED (with the check off it would
-    be published as CONVERGED)."""
+    nothing about it. The matches fit one homography per pair far worse than the tracker's noise:
+    MODEL_MISMATCH (not DEGENERATE_MOTION); with that check off the lens-model check still keeps it
+    from CONVERGED, and with both off it would be published as CONVERGED."""
     from ptz_selfcal.camera.distortion import division_lambda_for_corner_shift
 
     K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
@@ -487,8 +488,13 @@ def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
     f = plain.calibration.calibrator.reference_K[1, 1]
     assert abs(f / 1000.0 - 1.0) > 5e-3
     assert S.CONVERGED not in {o.status for o in outs}
+    assert outs[-1].status == S.MODEL_MISMATCH and "tracker's noise" in outs[-1].message
+    unmatched = cs.CalibratorSession(fixed_lens_config(model_mismatch_ratio=1e6))
+    outs = feed_distorted(unmatched, K, H, lam)
     assert outs[-1].status == S.CALIBRATING and "radial term" in outs[-1].message
-    unchecked = cs.CalibratorSession(fixed_lens_config(converged_max_lens_model_change=1.0))
+    unchecked = cs.CalibratorSession(
+        fixed_lens_config(converged_max_lens_model_change=1.0, model_mismatch_ratio=1e6)
+    )
     assert feed_distorted(unchecked, K, H, lam)[-1].status == S.CONVERGED
 
 
@@ -539,8 +545,10 @@ def test_map_prior_is_weighed_with_the_measured_image_noise(seed: int) -> None:
         cs.SessionConfig(nominal_hfov_deg=30.0, min_solve_period_s=0.0, max_solve_duty=1.0)
     )
     outs = feed(session, H, zoom, seed=seed)
-    assert outs[-1].status == S.CONVERGED
-    # sigma_f covers the truth; CONVERGED's 1 % is not met here (the lead knows the figures)
+    # the near-ambiguity leaves f a 1-sigma of about 0.5 %: CALIBRATING, never CONVERGED (whose frames
+    # were up to 1.4 % off when a stable solver was enough)
+    assert outs[-1].status == S.CALIBRATING and "1-sigma of f" in outs[-1].message
+    assert_promises(outs, K)
     for j, out in enumerate(outs):
         if out.status in (S.CONVERGED, S.CALIBRATING):
             assert abs(out.K[1, 1] - K[j][1, 1]) < 3.0 * out.sigma_f, (j, out.status)

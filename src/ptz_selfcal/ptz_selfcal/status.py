@@ -19,6 +19,9 @@ class CalibrationStatus(StrEnum):
     DEGENERATE_MOTION = "DEGENERATE_MOTION"
     TRACKING_LOST = "TRACKING_LOST"
     PREDICTED_FROM_ZOOM = "PREDICTED_FROM_ZOOM"
+    # the keyframe matches fit the lens model far worse than the tracker's own noise: the model is wrong
+    # (radial distortion not modelled, a rolling shutter), not the motion
+    MODEL_MISMATCH = "MODEL_MISMATCH"
 
 
 class TrackingState(StrEnum):
@@ -35,12 +38,20 @@ class TrackingState(StrEnum):
 CALIBRATED: frozenset[CalibrationStatus] = frozenset(
     {CalibrationStatus.CALIBRATING, CalibrationStatus.CONVERGED}
 )
+# Statuses a solve can leave: a calibration, or its best estimate flagged for the motion or the lens model.
+SOLVED: frozenset[CalibrationStatus] = CALIBRATED | {
+    CalibrationStatus.DEGENERATE_MOTION,
+    CalibrationStatus.MODEL_MISMATCH,
+}
 # Statuses of a frame without a usable homography: intrinsics, if any, come from the zoom model.
 LOSS_STATUSES: frozenset[CalibrationStatus] = frozenset(
     {CalibrationStatus.PREDICTED_FROM_ZOOM, CalibrationStatus.TRACKING_LOST}
 )
 # Statuses that deserve a diagnostics warning: the output is not a fresh self-calibration.
-WARN_STATUSES: frozenset[CalibrationStatus] = LOSS_STATUSES | {CalibrationStatus.DEGENERATE_MOTION}
+WARN_STATUSES: frozenset[CalibrationStatus] = LOSS_STATUSES | {
+    CalibrationStatus.DEGENERATE_MOTION,
+    CalibrationStatus.MODEL_MISMATCH,
+}
 
 # Tracking states whose result carries a usable reference -> frame homography (section 2.2).
 HOMOGRAPHY_STATES: frozenset[TrackingState] = frozenset(

@@ -64,6 +64,7 @@ STATUS_TO_MSG: Mapping[CalibrationStatus, int] = MappingProxyType(
         CalibrationStatus.DEGENERATE_MOTION: FrameCalibration.DEGENERATE_MOTION,
         CalibrationStatus.TRACKING_LOST: FrameCalibration.TRACKING_LOST,
         CalibrationStatus.PREDICTED_FROM_ZOOM: FrameCalibration.PREDICTED_FROM_ZOOM,
+        CalibrationStatus.MODEL_MISMATCH: FrameCalibration.MODEL_MISMATCH,
     }
 )
 MSG_TO_STATUS: Mapping[int, CalibrationStatus] = MappingProxyType({v: k for k, v in STATUS_TO_MSG.items()})

@@ -149,12 +149,18 @@ class SessionConfig:
         "adjustment. D = its plumb_bob fit at each frame's K. Off by default: on an undistorted lens it "
         "costs accuracy (benchmarks/results/distortion.txt)",
     )
-    # sigma_f measures the noise: uncertainty is reported instead of confident nonsense
+    # sigma_f is honest (online/status_policy.py): below this bound 1 % is several sigma away
     converged_max_sigma_f: float = setting(
-        0.01,
-        "focal_model constant: CONVERGED only while the focal length's 1-sigma is below this fraction "
-        "(else CALIBRATING)",
+        0.002,
+        "CONVERGED only while the focal length's honest 1-sigma (common scale included, section 6.2) is "
+        "below this fraction (else CALIBRATING)",
         bounds=(1e-6, 1.0),
+    )
+    model_mismatch_ratio: float = setting(
+        1.5,
+        "MODEL_MISMATCH when the keyframe matches fit the lens model (one homography per pair, or the "
+        "adjustment with distortion) worse than this many times the tracker's noise (local fits)",
+        bounds=(1.0, 1e6),
     )
     # sigma_f does not measure the lens model's bias: toggling the radial term does (conservative: a
     # strongly distorted lens whose pan never closes a loop stays CALIBRATING)

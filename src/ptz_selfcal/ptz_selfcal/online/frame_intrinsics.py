@@ -18,12 +18,11 @@ from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.work import CalibrationSnapshot
 from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
-from ptz_selfcal.status import CALIBRATED, CalibrationStatus
+from ptz_selfcal.status import SOLVED, CalibrationStatus
 from ptz_selfcal.zoom.model import ZoomModel
 
 Array = NDArray[np.float64]
 
-_SOLVED = (*CALIBRATED, CalibrationStatus.DEGENERATE_MOTION)  # the statuses a solve can leave
 _LIMIT = 4096  # keyframe ids grow with the frame index: every per-keyframe map is bounded
 
 
@@ -125,13 +124,8 @@ def calibrated_output(
     snap: CalibrationSnapshot, frame: FrameInput, K: Array, R: Array, sigma_f: float, D: Array
 ) -> FrameOutput:
     """A calibrated frame: its K transferred from the snapshot, the snapshot's status and residual."""
-    calibrated = (
-        CalibrationStatus.CALIBRATING,
-        CalibrationStatus.CONVERGED,
-        CalibrationStatus.DEGENERATE_MOTION,
-    )
     return FrameOutput(
-        status=snap.state if snap.state in calibrated else CalibrationStatus.CALIBRATING,
+        status=snap.state if snap.state in SOLVED else CalibrationStatus.CALIBRATING,
         K=np.asarray(K, dtype=float),
         D=D,
         R=np.asarray(R, dtype=float) if np.all(np.isfinite(R)) else None,

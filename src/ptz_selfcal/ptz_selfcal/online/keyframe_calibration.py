@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import math
 import time
 from collections import OrderedDict, deque
@@ -28,6 +29,7 @@ from ptz_selfcal.online.frames import FrameOutput
 from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
 from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
+from ptz_selfcal.online.status_policy import ModelFit, StatusEvidence, StatusPolicy, decide, honest_sigma
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult, ZoomTable
 from ptz_selfcal.persist.session_state import SavedState, load_zoom_model, state_to_dict
 from ptz_selfcal.status import CalibrationStatus
@@ -49,6 +51,12 @@ class KeyframeCalibration:
         self._warnings: list[str] = []
         self.matches: OrderedDict[tuple[int, int], KeyframeMatchSet] = OrderedDict()
         self.solver = KeyframeBundleSolver(config, self.matches)
+        self.model_fit = ModelFit()  # the keyframe matches' fits: the tracker's noise, the pinhole misfit
+        self.policy = StatusPolicy(
+            max_sigma_f=config.converged_max_sigma_f,
+            max_misfit_ratio=config.model_mismatch_ratio,
+            max_lens_model_change=config.converged_max_lens_model_change if config.fixed_lens else None,
+        )
         self.calibrator: IncrementalCalibrator | None = None
         self.image_size: tuple[int, int] | None = None
         self.epoch = 0
@@ -78,6 +86,7 @@ class KeyframeCalibration:
             self.image_size = work.image_size
             for m in work.matches:
                 self.matches[(m.keyframe_id, m.other_keyframe_id)] = m
+                self.model_fit.add((m.keyframe_id, m.other_keyframe_id), m.points, m.other_points)
                 while len(self.matches) > self.config.max_match_pairs:
                     self.matches.popitem(last=False)
             solved, added = self._solve(work, max_seconds)
@@ -183,7 +192,7 @@ class KeyframeCalibration:
         self._solve_times.append(seconds)
         if first and calibrator.calibrated:
             self._needs_refinement = True  # a second, warm-started pass (with BA) right away
-        if calibrator.state is CalibrationStatus.CONVERGED:
+        if self._status(calibrator, "")[0] is CalibrationStatus.CONVERGED:  # the policy's, not the solver's
             self._learn_zoom_model(calibrator)
 
     # ----------------------------------------------------------------------------------------------
@@ -209,11 +218,15 @@ class KeyframeCalibration:
             if ref is not None:
                 keyframes[int(ref)] = (np.eye(3), K_ref, np.eye(3))
         state, message = self._status(calibrator, message)
+        copied = IncrementalCalibrator.from_dict(calibrator.to_dict())
+        if copied.last_solve is not None:  # the frames' sigma_f: the honest common scale (section 6.2)
+            sigma = self.sigma_f(calibrator) * float(copied.last_solve.K_ref[1, 1])
+            copied.last_solve = dataclasses.replace(copied.last_solve, sigma_f_ref=sigma)
         return CalibrationSnapshot(
             epoch=self.epoch,
             zoom_table=self._zoom_table(),
             keyframes=keyframes,
-            calibrator=IncrementalCalibrator.from_dict(calibrator.to_dict()),
+            calibrator=copied,
             calibrated=calibrator.calibrated,
             state=state,
             message=message,
@@ -222,25 +235,41 @@ class KeyframeCalibration:
             shared_lam=self.solver.shared_lam,
         )
 
-    def _status(self, calibrator: IncrementalCalibrator, message: str) -> tuple[CalibrationStatus, str]:
-        """The calibrator's state, except that a fixed lens is CONVERGED only while its focal length is
-        pinned: a small 1-sigma, and no move when the lens model changes (section 6.2 meets section 7)."""
-        state = calibrator.state
+    def sigma_f(self, calibrator: IncrementalCalibrator) -> float:
+        """The honest relative 1-sigma of the reference f (online/status_policy.honest_sigma): the
+        adjustment's, rescaled to the tracker's noise measured on the keyframe matches."""
         solve = calibrator.last_solve
-        if not (self.config.fixed_lens and state == CalibrationStatus.CONVERGED and solve is not None):
-            return state, message
-        c = self.config
+        if solve is None:
+            return math.nan
         rel = solve.sigma_f_ref / solve.K_ref[1, 1]
-        if not rel <= c.converged_max_sigma_f:
-            return CalibrationStatus.CALIBRATING, (
-                f"1-sigma of f {100 * rel:.2g}% > {100 * c.converged_max_sigma_f:.2g}%"
-            )
-        if not (change := self.solver.measure_lens_model_change()) <= c.converged_max_lens_model_change:
-            return CalibrationStatus.CALIBRATING, (
-                f"f moves by {100 * change:.2g}% with the radial term toggled "
-                f"(> {100 * c.converged_max_lens_model_change:.2g}%): not pinned by geometry"
-            )
-        return state, message
+        adjusted = "+" in solve.method  # LM on eq. 22, then the bundle adjustment
+        noise = self.solver.noise_estimate if adjusted else None
+        return honest_sigma(float(rel), noise, self.model_fit.tracker_noise)
+
+    def _misfit(self) -> float:
+        """The lens model's residual noise as a transfer error per coordinate (px): with distortion
+        estimated, the adjustment's on the raw matches; without, one homography per match set."""
+        c = self.config
+        distorted = self.solver.lens_model is not None or (c.fixed_lens and c.estimate_distortion)
+        if not distorted:
+            return self.model_fit.pinhole_misfit
+        solve = self.calibrator.last_solve if self.calibrator is not None else None
+        noise = self.solver.noise_estimate
+        if solve is None or "+" not in solve.method or noise is None:
+            return math.nan
+        return math.sqrt(2.0) * noise
+
+    def _status(self, calibrator: IncrementalCalibrator, message: str) -> tuple[CalibrationStatus, str]:
+        """The status policy (online/status_policy.py) on this calibration's evidence."""
+        evidence = StatusEvidence(
+            solver_state=calibrator.state,
+            solver_message=message,
+            sigma_f=self.sigma_f(calibrator),
+            misfit=self._misfit(),
+            tracker_noise=self.model_fit.tracker_noise,
+            lens_model_change=self.solver.measure_lens_model_change if self.config.fixed_lens else None,
+        )
+        return decide(self.policy, evidence)
 
     def _zoom_table(self, points: int = 17) -> ZoomTable | None:
         """The zoom model over its learned range for the frame path's gate (np.interp there: no spline
@@ -302,6 +331,7 @@ class KeyframeCalibration:
         self.calibrator = None
         self._backlog.clear()
         self.matches.clear()
+        self.model_fit.forget()
         self.keyframe_zoom.clear()
         self.keyframe_rate.clear()
         self.sampled_keyframes.clear()

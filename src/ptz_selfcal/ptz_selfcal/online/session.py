@@ -62,6 +62,7 @@ Array = NDArray[np.float64]
 
 _S = CalibrationStatus
 _TRANSFER_ERRORS = (SelfCalibrationError, ValueError, np.linalg.LinAlgError)
+_FLAGGED = (_S.DEGENERATE_MOTION, _S.MODEL_MISMATCH)  # a solve's best estimate, not a calibration
 
 
 _MATCH_WAIT_FRAMES = 8  # more than the frames a lock-step replay keeps in flight
@@ -187,14 +188,10 @@ class CalibratorSession:
             out = calibrated_output(
                 snap, frame, K, R, sigma_f, self._plumb_bob(K, snap.shared_lam, self.image_size)
             )
-            if out.status != _S.DEGENERATE_MOTION:
+            if out.status not in _FLAGGED:
                 self.last_good = out
             return out
-        status = (
-            _S.DEGENERATE_MOTION
-            if snap is not None and snap.state == _S.DEGENERATE_MOTION
-            else _S.INITIALISING
-        )
+        status = snap.state if snap is not None and snap.state in _FLAGGED else _S.INITIALISING
         out = self._prior_output(frame, status, H)
         if snap is not None and snap.message:
             out.message = snap.message
