@@ -1,0 +1,216 @@
+"""mosaic node: the live panorama of what the camera has seen (paper section 8), beside the calibrator.
+
+Subscribes to topics.FRAME_IN (the working-resolution mono8 image), topics.FRAME_CALIBRATION (K, D,
+orientation, status) and topics.HOMOGRAPHY (the tracking reference), matched by header stamp (each
+frame's own reference: the three topics arrive in any order). Only
+CONVERGED frames with a valid orientation enter, at most one per `frame_period` seconds of image time
+(the newest one then), into a fixed `width` x `width`/2 spherical canvas (mosaic/live.py: memory is the
+canvas, about width^2 bytes; each frame touches its own footprint only). The orientations are relative
+to the calibration's reference, so a new tracking reference starts a new mosaic. Every
+`publish_period` seconds, when frames entered since the last one, the canvas goes out as a
+sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG with alpha 0 where nothing was seen),
+its header the newest frame's. Off unless started (the suite's launch parameter). Run:
+    python -m ptz_selfcal.nodes.mosaic_node --ros-args -p width:=8192
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import Counter, OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import CompressedImage
+
+from ptz_selfcal import topics
+from ptz_selfcal.camera.geometry import matrix_from_quaternion
+from ptz_selfcal.mosaic.live import FORMATS, LiveMosaic
+from ptz_selfcal.mosaic.warp import FrameView
+from ptz_selfcal.nodes.conversions import FrameError, declare_params, mono8_from_msg
+from ptz_selfcal.nodes.params import config_kwargs, params_from
+from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.settings import setting
+from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, IngestedFrame
+
+# Messages of each input kept while their partners are on the way (they come on three topics).
+PENDING = 16
+
+
+@dataclass(frozen=True)
+class MosaicNodeConfig:
+    """The mosaic node's parameters."""
+
+    width: int = setting(
+        4096,
+        "mosaic width in pixels (the full turn; the height is half of it): the canvas is fixed, about "
+        "width^2 bytes (8192: 67 MB)",
+        bounds=(256, 16384),
+    )
+    frame_period: float = setting(
+        0.5,
+        "seconds of image time between two frames entering the mosaic at least (the cost: one warp of "
+        "a frame's footprint each time)",
+        bounds=(0.0, 3600.0),
+    )
+    publish_period: float = setting(
+        5.0, "seconds between two published mosaics (only when frames entered)", bounds=(0.1, 86400.0)
+    )
+    format: str = setting("jpeg", "jpeg (grey) or png (grey + alpha where seen)", choices=FORMATS)
+    jpeg_quality: int = setting(85, "JPEG quality of the published mosaic", bounds=(1, 100))
+
+
+PARAMS = params_from(MosaicNodeConfig)
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _put(pending: OrderedDict, key: int, value: Any) -> None:
+    pending[key] = value
+    while len(pending) > PENDING:
+        pending.popitem(last=False)
+
+
+def frame_view(fc: Any, width: int, height: int) -> FrameView | None:
+    """A FrameCalibration's geometry (full resolution), None without a valid orientation or K."""
+    o = fc.orientation
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    if not (np.all(np.isfinite(q)) and abs(float(np.linalg.norm(q)) - 1.0) < 1e-3):
+        return None
+    values = (fc.fx, fc.fy, fc.cx, fc.cy, fc.skew, fc.k1, fc.k2)
+    if not all(math.isfinite(v) for v in values) or fc.fx <= 0.0 or fc.fy <= 0.0:
+        return None
+    K = np.array([[fc.fx, fc.skew, fc.cx], [0.0, fc.fy, fc.cy], [0.0, 0.0, 1.0]])
+    return FrameView(K, (float(fc.k1), float(fc.k2), 0.0), matrix_from_quaternion(q), width, height)
+
+
+class MosaicNode(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("mosaic", **kwargs)
+        p = declare_params(self, PARAMS)
+        self._config = MosaicNodeConfig(**config_kwargs(MosaicNodeConfig, p))
+        self._mosaic = LiveMosaic(self._config.width)
+        self._counts: Counter[str] = Counter()
+        self._warnings = CountedWarnings(self, self._counts)
+        self._frames: OrderedDict[int, IngestedFrame] = OrderedDict()
+        self._calibrations: OrderedDict[int, FrameCalibration] = OrderedDict()
+        self._references: OrderedDict[int, str] = OrderedDict()
+        self._reference: str | None = None  # the mosaic's
+        self._last_added_ns: int | None = None
+        self._header: Any = None
+        self._dirty = False
+        self._cpu = 0.0  # seconds in this node's callbacks
+        self._pub = self.create_publisher(CompressedImage, topics.MOSAIC, reliable_qos(1))
+        self.create_subscription(IngestedFrame, topics.FRAME_IN, self._on_frame, reliable_qos(PENDING))
+        self.create_subscription(
+            FrameCalibration, topics.FRAME_CALIBRATION, self._on_calibration, reliable_qos(PENDING)
+        )
+        self.create_subscription(
+            HomographyStamped, topics.HOMOGRAPHY, self._on_homography, reliable_qos(4 * PENDING)
+        )
+        self.create_timer(self._config.publish_period, self._publish)
+        p = self._mosaic.projection
+        self.get_logger().info(
+            f"mosaic of the CONVERGED frames of {topics.FRAME_IN} -> {self._pub.topic_name}: {p.width}x"
+            f"{p.height} ({self._mosaic.nbytes / 1e6:.0f} MB), a frame every {self._config.frame_period} s, "
+            f"published every {self._config.publish_period} s as {self._config.format}"
+        )
+
+    @property
+    def counts(self) -> Counter[str]:
+        return self._counts
+
+    # ----------------------------------------------------------------------------------------------
+    def _on_homography(self, msg: HomographyStamped) -> None:
+        ref = msg.reference_stamp
+        reference = f"{msg.reference_frame_id}@{ref.sec}.{ref.nanosec:09d}"
+        stamp = _stamp_ns(msg.header.stamp)
+        _put(self._references, stamp, reference)
+        self._match(stamp)
+
+    def _on_frame(self, msg: IngestedFrame) -> None:
+        start = time.thread_time()
+        stamp = _stamp_ns(msg.header.stamp)
+        if self._wanted(stamp):
+            _put(self._frames, stamp, msg)
+            self._match(stamp)
+        self._cpu += time.thread_time() - start
+
+    def _on_calibration(self, msg: FrameCalibration) -> None:
+        start = time.thread_time()
+        self._counts["calibrations_in"] += 1
+        stamp = _stamp_ns(msg.header.stamp)
+        if msg.status != FrameCalibration.CONVERGED:
+            self._counts["not_converged"] += 1
+        elif self._wanted(stamp):
+            _put(self._calibrations, stamp, msg)
+            self._match(stamp)
+        self._cpu += time.thread_time() - start
+
+    def _wanted(self, stamp: int) -> bool:
+        """Whether a frame of this stamp may enter now (frame_period of image time since the last)."""
+        last = self._last_added_ns
+        return last is None or stamp - last >= self._config.frame_period * 1e9 or stamp < last
+
+    def _match(self, stamp: int) -> None:
+        """A frame enters once its image, its calibration and its homography (which names the
+        reference the orientation is relative to) are all here; they come on three topics, in any order."""
+        frame, fc = self._frames.get(stamp), self._calibrations.get(stamp)
+        reference = self._references.get(stamp)
+        if frame is None or fc is None or reference is None:
+            return
+        del self._frames[stamp], self._calibrations[stamp]
+        if not self._wanted(stamp):
+            return
+        view = frame_view(fc, int(frame.full_width), int(frame.full_height))
+        if view is None:
+            self._counts["invalid_calibration"] += 1
+            return
+        try:
+            image = mono8_from_msg(frame.image)
+        except FrameError as exc:
+            self._warnings.warn_once("bad_image", str(exc))
+            return
+        if reference != self._reference:
+            if self._reference is not None:
+                self.get_logger().info(f"new tracking reference {reference}: a new mosaic")
+                self._counts["new_mosaics"] += 1
+            self._mosaic.reset()
+            self._reference = reference
+        if self._mosaic.add(image, view) is not None:
+            self._counts["frames_added"] += 1
+            self._last_added_ns, self._header, self._dirty = stamp, frame.header, True
+
+    def _publish(self) -> None:
+        if not self._dirty:
+            return
+        start = time.thread_time()
+        msg = CompressedImage()
+        msg.header = self._header
+        msg.format = self._config.format
+        msg.data = self._mosaic.encode(self._config.format, self._config.jpeg_quality)
+        self._pub.publish(msg)
+        self._dirty = False
+        self._counts["mosaics_out"] += 1
+        self._cpu += time.thread_time() - start
+
+    def close(self) -> None:
+        c = self._counts
+        self.get_logger().info(
+            f"{c['frames_added']} frames added ({c['calibrations_in']} calibrations in, {c['not_converged']} "
+            f"not converged), {c['mosaics_out']} mosaics published, {c['new_mosaics']} new references; "
+            f"{self._cpu:.2f} s CPU in callbacks"
+        )
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MosaicNode, args, name="mosaic")
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
