@@ -32,6 +32,7 @@ IMAGE_COMPRESSED = "ptz/image_raw/compressed"
 JOINT_STATES = "ptz/joint_states"
 GT_CAMERA_INFO = "ptz/ground_truth/camera_info"
 GT_JOINT_STATES = "ptz/ground_truth/joint_states"
+GT_MOVING_MASK = "ptz/ground_truth/moving_mask"  # mono8 Image per image, same header: 255 on moving objects
 FRAME_IN = "ptz/selfcal/frame_in"
 HOMOGRAPHY = "ptz/selfcal/homography"
 KEYFRAMES = "ptz/selfcal/keyframes"
@@ -50,6 +51,7 @@ TYPES = {
     JOINT_STATES: "sensor_msgs/msg/JointState",
     GT_CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
     GT_JOINT_STATES: "sensor_msgs/msg/JointState",
+    GT_MOVING_MASK: "sensor_msgs/msg/Image",
     FRAME_IN: "ptz_selfcal_msgs/msg/IngestedFrame",
     HOMOGRAPHY: "ptz_selfcal_msgs/msg/HomographyStamped",
     KEYFRAMES: "ptz_selfcal_msgs/msg/KeyframeMatches",

@@ -37,6 +37,13 @@ import numpy as np
 
 from ptz_selfcal import topics
 from ptz_selfcal.camera.distortion import PLUMB_BOB
+from ptz_selfcal.sim.nuisances import (
+    ExposureSteps,
+    LowLight,
+    Nuisances,
+    crossing_objects,
+    followed_target,
+)
 from ptz_selfcal.sim.render import (
     MOTIONS,
     ZOOM_LAWS,
@@ -60,6 +67,7 @@ DEFAULT_START = 1_767_225_600  # 2026-01-01T00:00:00Z: a fixed epoch keeps the b
 IMAGE_TYPE = topics.TYPES[topics.IMAGE_RAW]
 COMPRESSED_TYPE = topics.TYPES[topics.IMAGE_COMPRESSED]
 INFO_TYPE = topics.TYPES[topics.GT_CAMERA_INFO]
+MASK_TYPE = topics.TYPES[topics.GT_MOVING_MASK]
 JOINT_TYPE = topics.TYPES[topics.JOINT_STATES]
 
 
@@ -157,6 +165,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--jobs", type=int, default=2, help="rendering threads (default 2)")
     g.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_real_video_arguments(parser)
+
+
+def add_real_video_arguments(parser: argparse.ArgumentParser) -> None:
+    """Issue 16's nuisances (sim/nuisances.py); all off by default (the bag is then unchanged)."""
+    g = parser.add_argument_group("real video (all off by default)")
+    g.add_argument(
+        "--moving-objects", type=int, default=0, metavar="N",
+        help="N textured objects (panorama patches, 3-6 deg wide) crossing the view at 4-10 deg/s",
+    )  # fmt: skip
+    g.add_argument(
+        "--follow-target", type=float, nargs=2, metavar=("T0", "T1"),
+        help="a large target followed by the camera from T0 to T1 s: static in the image while the "
+        "background moves (a sixth of the image at T0, growing with the zoom)",
+    )  # fmt: skip
+    g.add_argument(
+        "--exposure-steps", type=float, default=0.0, metavar="SECONDS",
+        help="auto-exposure: the gain steps every SECONDS through x1, 1.25, 0.85, 1.15, 0.75",
+    )  # fmt: skip
+    g.add_argument(
+        "--vignetting", type=float, default=0.0, metavar="STRENGTH",
+        help="cos^4 vignetting about the principal point, STRENGTH = the corners' loss (0.4 = 40%%)",
+    )  # fmt: skip
+    g.add_argument(
+        "--low-light", action="store_true",
+        help="a dim scene (x0.3) with shot noise (one electron per grey level); with --jpeg-quality 60 "
+        "for a night camera's compression",
+    )  # fmt: skip
+    g.add_argument(
+        "--rolling-shutter", type=float, default=0.0, metavar="READOUT_S",
+        help="rows read one after another over READOUT_S seconds, the stamp at the middle row",
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------------
@@ -279,10 +319,43 @@ def validate(args: argparse.Namespace) -> None:
     )
     _check(args.namespace.startswith("/") and " " not in args.namespace, "--namespace must start with /")
     _check(1 <= args.jobs <= 64, f"--jobs must be in 1..64, got {args.jobs}")
+    validate_real_video(args)
     try:
         make_setup(args)
     except ValueError as exc:  # e.g. a patrol whose dwells fill the sequence
         raise CliError(str(exc)) from None
+
+
+def validate_real_video(args: argparse.Namespace) -> None:
+    period = (args.frames - 1) / args.fps
+    _check(0 <= args.moving_objects <= 50, f"--moving-objects must be in 0..50, got {args.moving_objects}")
+    if args.follow_target is not None:
+        t0, t1 = args.follow_target
+        _check(
+            _finite(t0, t1) and 0.0 <= t0 < t1 <= period,
+            f"--follow-target T0 T1 must satisfy 0 <= T0 < T1 <= {period:g} s (the sequence)",
+        )
+    _check(_finite(args.exposure_steps) and args.exposure_steps >= 0.0, "--exposure-steps must be >= 0 s")
+    _check(_finite(args.vignetting) and 0.0 <= args.vignetting <= 0.9, "--vignetting must be in [0, 0.9]")
+    _check(
+        _finite(args.rolling_shutter) and 0.0 <= args.rolling_shutter <= 1.0 / args.fps,
+        f"--rolling-shutter must be in [0, 1 / fps = {1.0 / args.fps:g}] s",
+    )
+
+
+def real_video_scene(args: argparse.Namespace, panorama: Panorama, profile: CameraProfile) -> Nuisances:
+    """The nuisances the options ask for (objects drawn from their own random stream)."""
+    rng = np.random.default_rng([args.seed, 4])
+    objects = crossing_objects(args.moving_objects, panorama, profile, rng)
+    if args.follow_target is not None:
+        objects += (followed_target(panorama, profile, *args.follow_target, rng),)
+    return Nuisances(
+        objects=objects,
+        readout=args.rolling_shutter,
+        exposure=ExposureSteps(args.exposure_steps) if args.exposure_steps > 0.0 else None,
+        vignetting=args.vignetting,
+        low_light=LowLight() if args.low_light else None,
+    )
 
 
 def _out_path(path: str) -> Path:
@@ -409,14 +482,33 @@ def image_msg(types: Any, header: Any, fmt: str, payload: np.ndarray | bytes, si
 # Rendering pipeline
 # --------------------------------------------------------------------------------------------------
 def frame_renderer(
-    args: argparse.Namespace, panorama: Panorama, setup: Setup, truth: CameraState
-) -> Callable[[int], np.ndarray | bytes]:
-    """frame index -> encoded image (bytes for jpeg/png, a uint8 array for raw formats)."""
+    args: argparse.Namespace,
+    panorama: Panorama,
+    setup: Setup,
+    truth: CameraState,
+    scene: Nuisances | None = None,
+) -> Callable[[int], tuple[np.ndarray | bytes, np.ndarray | None]]:
+    """frame index -> (encoded image (bytes for jpeg/png, a uint8 array for raw formats), the moving
+    objects' mask when the scene has objects)."""
     interpolation = cv2.INTER_CUBIC if args.interpolation == "cubic" else cv2.INTER_LINEAR
     size = (args.width, args.height)
+    scene = scene or Nuisances()
 
-    def render(i: int) -> np.ndarray | bytes:
-        view = render_view(panorama, truth.K(i), truth.R(i), size, float(truth.lam[i]) or None, interpolation)
+    def render(i: int) -> tuple[np.ndarray | bytes, np.ndarray | None]:
+        mask = None
+        if scene.geometric:
+            view, mask = scene.render(panorama, setup.profile, float(truth.t[i]), interpolation)
+        else:
+            view = render_view(
+                panorama, truth.K(i), truth.R(i), size, float(truth.lam[i]) or None, interpolation
+            )
+        if scene.photometric:
+            noise = np.random.default_rng([args.seed, 3, i])
+            view = scene.expose(view, float(truth.t[i]), truth.pp[i], noise)
+        payload = encoded(view, i)
+        return payload, (mask if scene.objects else None)
+
+    def encoded(view: np.ndarray, i: int) -> np.ndarray | bytes:
         rng = np.random.default_rng([args.seed, 2, i])  # one stream per frame: order-independent
         image = setup.image_model.apply(view, float(truth.t[i]), rng)
         if args.format == "jpeg":
@@ -544,16 +636,25 @@ def write_bag(args: argparse.Namespace, bag_path: Path, panorama: Panorama, setu
     counts = setup.zoom.counts(truth.f)  # exact zoom counts of the ground truth
     encoders = encoder_messages(types, setup, args.seed)
     progress = Progress(args.frames, args.quiet)
+    scene = real_video_scene(args, panorama, setup.profile)
+    mask_topic = f"{args.namespace.rstrip('/')}/{topics.GT_MOVING_MASK}"
     with BagWriter(bag_path, storage=args.storage) as writer:
         for topic, msgtype in names.types():
             writer.add_topic(topic, msgtype)
-        frames = ordered_map(frame_renderer(args, panorama, setup, truth), args.frames, args.jobs)
-        for i, payload in enumerate(frames):
+        if scene.objects:
+            writer.add_topic(mask_topic, MASK_TYPE)
+        render = frame_renderer(args, panorama, setup, truth, scene)
+        for i, (payload, mask) in enumerate(ordered_map(render, args.frames, args.jobs)):
             t_ns = setup.start_ns + round(float(truth.t[i]) * 1e9)
             while encoders and encoders[0][0] <= t_ns:
                 writer.write(names.encoders, JOINT_TYPE, *encoders.popleft())
             for topic, msgtype, msg in frame_messages(types, args, names, truth, counts, i, t_ns, payload):
                 writer.write(topic, msgtype, t_ns, msg)
+            if mask is not None:  # the moving objects' ground truth, the image's header
+                header = _header(types, t_ns, args.frame_id)
+                writer.write(
+                    mask_topic, MASK_TYPE, t_ns, image_msg(types, header, "mono8", mask, mask.shape[::-1])
+                )
             progress.update(i + 1)
         for t_ns, msg in encoders:
             writer.write(names.encoders, JOINT_TYPE, t_ns, msg)
@@ -605,8 +706,33 @@ def params_yaml(args: argparse.Namespace, setup: Setup, panorama_sha256: str) ->
             "pan_tilt_sigma_deg": float(np.degrees(e.pan_tilt_sigma)), "zoom_sigma_counts": e.zoom_sigma,
         },
         "image_model": {"noise_sigma": im.noise_sigma, "brightness_drift": im.brightness_drift},
+        **real_video_params(args),
     }  # fmt: skip
     return yaml.safe_dump(_plain(doc), sort_keys=False)
+
+
+def real_video_params(args: argparse.Namespace) -> dict[str, Any]:
+    """The real-video nuisances' parameters, only when one is on (other bags' files are unchanged)."""
+    on = (
+        args.moving_objects or args.follow_target or args.exposure_steps or args.vignetting
+        or args.low_light or args.rolling_shutter
+    )  # fmt: skip
+    if not on:
+        return {}
+    low = LowLight()
+    return {
+        "real_video": {
+            "moving_objects": args.moving_objects,
+            "follow_target_s": list(args.follow_target) if args.follow_target else None,
+            "moving_mask": f"{topics.GT_MOVING_MASK}: mono8, 255 on objects moving at the frame's time",
+            "exposure_step_s": args.exposure_steps, "exposure_gains": list(ExposureSteps(1.0).gains),
+            "vignetting_corner_loss": args.vignetting,
+            "low_light_dim": low.dim if args.low_light else None,
+            "low_light_electrons_per_level": low.electrons_per_level if args.low_light else None,
+            "rolling_shutter_readout_s": args.rolling_shutter,
+            "rolling_shutter_law": "row y at t + (y / (h - 1) - 1/2) readout; pan, tilt linear across it",
+        }
+    }  # fmt: skip
 
 
 def _plain(value: Any) -> Any:
