@@ -37,7 +37,31 @@ class SessionConfig:
         "keyframe rotation off the reference's optical axis needed before the first solve (section 6)",
         bounds=(0.0, 90.0),
     )
-    min_keyframes: int = setting(4, "keyframes needed before the first solve", bounds=(2, 1000))
+    # the first solve waits for the motion (min_axis_disambiguation_px), not for a count: eq. 22 with
+    # f per frame has more equations than unknowns from two frames besides the reference on
+    min_keyframes: int = setting(
+        2,
+        "keyframes (tracker keyframes and calibration frames) needed before the first solve",
+        bounds=(2, 1000),
+    )
+    min_axis_disambiguation_px: float = setting(
+        2.0,
+        "first solve once eq. 30's disambiguating term from the rotation about each camera axis (tilt and "
+        "pan, at the reference's image corner) reaches this many pixels: well above the homographies' "
+        "noise (sections 6.1 and 6.2)",
+        bounds=(0.0, 1e4),
+    )
+    calibration_frames: bool = setting(
+        True,
+        "ordinary frames join the solve when they add rotation or zoom the set does not have (every "
+        "frame's homography carries the information, not only the tracker's keyframes)",
+    )
+    calibration_frame_spacing: float = setting(
+        0.03,
+        "an ordinary frame joins the solve when it is this far from every frame of the set, in fields of "
+        "view of rotation and log f (and, once the set is full, farther than the set's closest pair)",
+        bounds=(1e-4, 10.0),
+    )
     max_keyframes: int = setting(
         30, "keyframes kept in the re-optimisation (bounds time and memory)", bounds=(4, 1000)
     )

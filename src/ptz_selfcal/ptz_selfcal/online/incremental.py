@@ -37,9 +37,11 @@ from ptz_selfcal.selfcal.degeneracy import (
     STATUS_INSUFFICIENT_ROTATION,
     STATUS_NEAR_AMBIGUOUS,
     STATUS_OK,
+    STATUS_SINGLE_AXIS,
     MotionReport,
     analyse_motion,
     rotation_vectors,
+    second_axis_missing,
     single_axis_is_degenerate,
 )
 from ptz_selfcal.selfcal.lm import lm_selfcalibration
@@ -59,6 +61,7 @@ class Keyframe:
     stamp: float | None = None
     matches: object | None = None  # opaque data for a bundle-adjustment solver (not serialised)
     K: Array | None = None  # latest estimate
+    tracked: bool = True  # a tracker keyframe (False: an ordinary frame chosen for its information)
 
 
 SolverFn = Callable[
@@ -107,6 +110,7 @@ class IncrementalCalibrator:
         solver: SolverFn | None = None,
         converge_tol: float = 5e-3,
         min_keyframes: int = 4,
+        min_axis_disambiguation_px: float = 2.0,
     ) -> None:
         if max_keyframes < min_keyframes:
             raise ValueError("max_keyframes must be >= min_keyframes")
@@ -116,6 +120,7 @@ class IncrementalCalibrator:
         self.max_keyframes = int(max_keyframes)
         self.converge_tol = float(converge_tol)
         self.min_keyframes = int(min_keyframes)
+        self.min_axis_disambiguation_px = float(min_axis_disambiguation_px)
         self.solver: SolverFn = solver or lm_solver
         if prior_K is None:
             cx, cy = image_centre(self.image_size)
@@ -144,21 +149,32 @@ class IncrementalCalibrator:
         H_ref_to_keyframe: ArrayLike,
         stamp: float | None = None,
         matches: object | None = None,
+        tracked: bool = True,
     ) -> CalibrationStatus:
-        """Store a keyframe; solve the first time the motion is well posed (initialisation, section 6).
+        """Store a keyframe (tracked=False: an ordinary frame chosen for its information); solve the
+        first time the motion is well posed (initialisation, section 6).
 
         Once calibrated, adding is bounded work only: re-solves are the caller's, by `reoptimise`.
         """
         H = normalise_homography(H_ref_to_keyframe)
         self.keyframes = [kf for kf in self.keyframes if kf.keyframe_id != keyframe_id]
-        self.keyframes.append(Keyframe(keyframe_id, H, None if stamp is None else float(stamp), matches))
+        stamp = None if stamp is None else float(stamp)
+        self.keyframes.append(Keyframe(keyframe_id, H, stamp, matches, tracked=bool(tracked)))
         if len(self.keyframes) > self.max_keyframes:
             self._drop_redundant(len(self.keyframes) - self.max_keyframes)
         if self.calibrated:
             return self.state
         self.motion = self._motion_from_current_calibration()
-        if self.motion.status == STATUS_INSUFFICIENT_ROTATION or len(self.keyframes) < self.min_keyframes:
+        missing = ""
+        if single_axis_is_degenerate(self.model) and self.motion.status != STATUS_SINGLE_AXIS:
+            missing = second_axis_missing(self.motion, self.min_axis_disambiguation_px)
+        if (
+            self.motion.status == STATUS_INSUFFICIENT_ROTATION
+            or missing
+            or len(self.keyframes) < self.min_keyframes
+        ):
             self.state = CalibrationStatus.INITIALISING
+            self.message = missing
             return self.state
         if self.motion.status != STATUS_OK:
             self.state = CalibrationStatus.DEGENERATE_MOTION
@@ -220,6 +236,7 @@ class IncrementalCalibrator:
             "max_keyframes": self.max_keyframes,
             "converge_tol": self.converge_tol,
             "min_keyframes": self.min_keyframes,
+            "min_axis_disambiguation_px": self.min_axis_disambiguation_px,
             "prior_K": self.prior_K.tolist(),
             "state": self.state.value,
             "message": self.message,
@@ -230,6 +247,7 @@ class IncrementalCalibrator:
                     "H": kf.H.tolist(),
                     "stamp": kf.stamp,
                     "K": None if kf.K is None else kf.K.tolist(),
+                    "tracked": kf.tracked,
                 }
                 for kf in self.keyframes
             ],
@@ -257,6 +275,7 @@ class IncrementalCalibrator:
             solver=solver,
             converge_tol=data.get("converge_tol", 5e-3),
             min_keyframes=data.get("min_keyframes", 4),
+            min_axis_disambiguation_px=data.get("min_axis_disambiguation_px", 2.0),
         )
         calibrator.keyframes = [
             Keyframe(
@@ -265,6 +284,7 @@ class IncrementalCalibrator:
                 kf["stamp"],
                 None,
                 None if kf["K"] is None else np.array(kf["K"], dtype=float),
+                bool(kf.get("tracked", True)),
             )
             for kf in data["keyframes"]
         ]
@@ -344,23 +364,35 @@ class IncrementalCalibrator:
         )
 
     def _drop_redundant(self, count: int) -> None:
-        """Drop `count` keyframes, each the older of the closest pair in (rotation, log zoom).
+        """Drop `count` keyframes, each from the closest pair in (rotation, log zoom): the ordinary frame
+        of the pair if one is (a tracker keyframe also brings the bundle adjustment real matches), else
+        the older.
 
         The most redundant keyframe carries the least new information; O(k^2), k <= max_keyframes + 1.
         """
         H = np.array([kf.H for kf in self.keyframes])
-        K_ref = self.reference_K
-        K = intrinsics_from_transferred_diac(H, K_ref, self.model, self.image_size)
-        R = rotations_from_homographies(
-            np.concatenate([np.eye(3)[None], H]), np.concatenate([K_ref[None], K])
-        )[1:]
-        fov = 2.0 * np.arctan(0.5 * self.image_size[0] / K[:, 1, 1])
-        rotvec = rotation_vectors(R) / np.median(fov)  # rotation in fields of view
-        features = np.column_stack([rotvec, np.log(K[:, 1, 1])])  # log zoom ~ fields of view change
+        features = information_features(H, self.reference_K, self.model, self.image_size)
         for _ in range(count):
             d = np.linalg.norm(features[:, None] - features[None], axis=2)
             d[np.diag_indices(len(d))] = np.inf
-            i, j = np.unravel_index(np.argmin(d), d.shape)
-            drop = min(i, j)  # the older of the most redundant pair
+            i, j = sorted(np.unravel_index(np.argmin(d), d.shape))
+            drop = j if self.keyframes[i].tracked and not self.keyframes[j].tracked else i
             del self.keyframes[drop]
             features = np.delete(features, drop, axis=0)
+
+
+def information_features(
+    H: Array, K_ref: Array, model: IntrinsicsModel, image_size: tuple[int, int], fov: float | None = None
+) -> Array:
+    """(n, 4) [rotation vector in fields of view, log f] of the frames whose homographies from the
+    reference are H, under the reference calibration K_ref (eq. 20): the metric in which a frame is
+    redundant with the set's or adds to it (log zoom ~ change of the field of view). fov: the field of
+    view in radians that scales the rotations (default the frames' median)."""
+    H = np.asarray(H, dtype=float).reshape(-1, 3, 3)
+    K = intrinsics_from_transferred_diac(H, K_ref, model, image_size)
+    R = rotations_from_homographies(np.concatenate([np.eye(3)[None], H]), np.concatenate([K_ref[None], K]))[
+        1:
+    ]
+    if fov is None:
+        fov = float(np.median(2.0 * np.arctan(0.5 * image_size[0] / K[:, 1, 1])))
+    return np.column_stack([rotation_vectors(R) / fov, np.log(K[:, 1, 1])])

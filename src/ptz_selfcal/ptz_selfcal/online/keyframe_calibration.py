@@ -114,7 +114,7 @@ class KeyframeCalibration:
             was_calibrated = calibrator.calibrated
             before = calibrator.last_solve
             try:
-                calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp)
+                calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp, tracked=kf.tracked)
             except _SOLVE_ERRORS as exc:
                 self.counters["calibrator_errors"] += 1
                 self._warn(f"keyframe {kf.keyframe_id} rejected: {exc}")
@@ -456,4 +456,5 @@ def new_calibrator(
         prior_K=prior,
         solver=solver,
         min_keyframes=config.min_keyframes,
+        min_axis_disambiguation_px=config.min_axis_disambiguation_px,
     )

@@ -51,6 +51,7 @@ from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_calibration import KeyframeCalibration, new_calibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
 from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
+from ptz_selfcal.online.selection import CalibrationFrameSelector
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult
 from ptz_selfcal.persist.atomic_file import remove_stale_temporaries
 from ptz_selfcal.persist.session_state import state_from_dict, write_state
@@ -115,6 +116,12 @@ class CalibratorSession:
         self._plumb_bob = PlumbBob()
         self._frame_dirty = False
         self._frame_times: deque[float] = deque(maxlen=2000)
+        # ordinary frames chosen for the solve (online/selection.py), and the prior they are chosen
+        # under before the first calibration
+        self._selector = CalibrationFrameSelector(
+            self.config.max_keyframes + 1, self.config.calibration_frame_spacing
+        )
+        self._prior: tuple[tuple, IncrementalCalibrator] | None = None
 
     # ---- the frame path --------------------------------------------------------------------------
     def process(self, frame: FrameInput) -> FrameOutput:
@@ -179,6 +186,8 @@ class CalibratorSession:
         self._tracked_against = kid
         if frame.tracking_state == TrackingState.NEW_KEYFRAME and kid not in self._seen_keyframes:
             self._keyframe_added(frame, kid, H, fast, verdict)
+        elif frame.tracking_state == TrackingState.TRACKING and verdict is ZoomVerdict.PASS and not fast:
+            self._propose(frame, H)
         if verdict is ZoomVerdict.REFUSE:
             self._counters["zoom_gate_rejections"] += 1
             return self._without_homography(frame)
@@ -218,6 +227,30 @@ class CalibratorSession:
             self._pending.append(
                 PendingKeyframe(kid, H, float(frame.stamp), float(frame.zoom), self._zoom_rate)
             )
+            calibrator = self._set_calibrator()
+            if calibrator is not None:
+                self._selector.member(kid, H, calibrator)
+
+    def _propose(self, frame: FrameInput, H: Array) -> None:
+        """An ordinary frame joins the solve when it adds rotation or zoom to the set (online/selection)."""
+        calibrator = self._set_calibrator() if self.config.calibration_frames else None
+        if calibrator is None:
+            return
+        frame_id = self._selector.propose(H, calibrator)
+        if frame_id is not None:
+            stamp, zoom = float(frame.stamp), float(frame.zoom)
+            self._pending.append(PendingKeyframe(frame_id, H, stamp, zoom, self._zoom_rate, tracked=False))
+
+    def _set_calibrator(self) -> IncrementalCalibrator | None:
+        """The calibration the set's frames are compared under: the latest, else the prior."""
+        if self._snapshot is not None:
+            return self._snapshot.calibrator
+        if self.image_size is None:
+            return None
+        key = (self.image_size, id(self._zoom))
+        if self._prior is None or self._prior[0] != key:
+            self._prior = (key, self._prior_calibrator())
+        return self._prior[1]
 
     def _prior_output(self, frame: FrameInput, status: str, H: Array) -> FrameOutput:
         """Before calibration: the zoom model at this zoom, else the prior reference K through H."""
@@ -334,6 +367,9 @@ class CalibratorSession:
             self._zoom = result.zoom_model if result.zoom_ready else None
         if result.snapshot is not None:
             self._snapshot = result.snapshot
+            if not result.backlog:  # every frame handed over is in the solve, or was dropped by it
+                held = {int(kf.keyframe_id) for kf in result.snapshot.calibrator.keyframes}
+                self._selector.keep_only(held | {int(p.keyframe_id) for p in self._pending})
             if result.snapshot.calibrated:
                 self.phase = Phase.CALIBRATED
             elif self.phase is Phase.CALIBRATED:
@@ -362,6 +398,7 @@ class CalibratorSession:
         self._motion.forget()
         self._tracked_against = None
         self._pending.clear()
+        self._selector.forget()
 
     # ---- persistence -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -378,6 +415,9 @@ class CalibratorSession:
             saved.last_good,
         )
         self._seen_keyframes = set(saved.keyframe_zoom)
+        self._selector.forget()
+        if saved.calibrator is not None:
+            self._selector.restored([int(kf.keyframe_id) for kf in saved.calibrator.keyframes])
         self.phase = Phase.NO_REFERENCE if saved.reference_id is None else Phase.REFERENCED
         if saved.calibrator is not None:
             self.accept(self.calibration.result())

@@ -25,13 +25,15 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class PendingKeyframe:
-    """A keyframe the frame path accepted for the solve."""
+    """A keyframe the frame path accepted for the solve, or an ordinary frame it chose for the
+    information it adds (online/selection.py: negative ids)."""
 
     keyframe_id: int
     H: Array  # reference -> keyframe, unit determinant
     stamp: float
     zoom: float  # zoom encoder at the keyframe (NaN when invalid)
     zoom_rate: float  # zoom encoder counts / s at the keyframe: the zoom model learns the encoder's lag
+    tracked: bool = True  # a tracker keyframe; False: an ordinary frame chosen for its information
 
 
 @dataclass(frozen=True)

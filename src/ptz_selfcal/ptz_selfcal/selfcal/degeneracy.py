@@ -41,6 +41,9 @@ class MotionReport:
     axis_ratio: float  # second / first principal extent of the rotation vectors (0 = single axis)
     disambiguation_px: float  # largest |(x/f)(x theta_Y - y theta_X)| at the image corners (eq. 30)
     relative_sigma_f: float  # median sigma_f / f over frames (NaN when not supplied)
+    # eq. 30's term from each camera axis alone at frame 0's corner: (|x y| / f) theta_X (tilt) and
+    # (x^2 / f) theta_Y (pan), largest over the frames
+    axis_disambiguation_px: tuple[float, float] = (0.0, 0.0)
 
     def to_dict(self) -> dict:
         """Plain Python types (YAML/JSON serialisable)."""
@@ -86,6 +89,20 @@ def disambiguation_magnitude(rotvec: Array, focal: Array, image_size: tuple[int,
     return np.max(np.abs(cross) * radius, axis=1) / focal
 
 
+def axis_disambiguation(rotvec: Array, focal: float, image_size: tuple[int, int]) -> tuple[float, float]:
+    """(tilt, pan): the largest size in pixels of eq. 30's disambiguating term that the rotations about
+    frame 0's x (tilt) and y (pan) axes give alone, at its image corner, f = frame 0's focal length.
+
+    With square pixels and zero skew the single-axis degeneracies are those of a camera axis (6.1:
+    pan-only, tilt-only), and f separates from the rotation only through this term (6.2): a sequence
+    determines its calibration once both components stand above the homographies' noise.
+    """
+    cx, cy = image_centre(image_size)
+    tilt = float(np.max(np.abs(rotvec[:, 0]))) * cx * cy / focal
+    pan = float(np.max(np.abs(rotvec[:, 1]))) * cx * cx / focal
+    return tilt, pan
+
+
 def analyse_motion(
     R: ArrayLike,
     K: ArrayLike,
@@ -97,6 +114,7 @@ def analyse_motion(
     min_disambiguation_px: float = 1.0,
     max_relative_sigma_f: float = 0.02,
     single_axis_degenerate: bool = True,
+    min_axis_disambiguation_px: float = 2.0,
 ) -> MotionReport:
     """Classify a sequence's motion for self-calibration (section 6).
 
@@ -105,6 +123,9 @@ def analyse_motion(
     Status, in order of precedence: insufficient_rotation, degenerate_single_axis, near_ambiguous, ok.
     single_axis_degenerate=False (a model for which one rotation axis is enough, see
     `single_axis_is_degenerate`): rotation about one axis is reported in the fields but not a status.
+    Rotations about one oblique axis (a sweep's first frames, pan and tilt in proportion) are not
+    degenerate with square pixels and zero skew: single_axis is not reported once both camera axes'
+    disambiguating terms (`axis_disambiguation`) reach min_axis_disambiguation_px.
     """
     rotvec = rotation_vectors(R)
     K = np.asarray(K, dtype=float).reshape(-1, 3, 3)
@@ -117,7 +138,8 @@ def analyse_motion(
     max_perp = float(np.degrees(np.max(np.linalg.norm(perp, axis=1))))
     sv = np.linalg.svd(rotvec, compute_uv=False)  # uncentred: single axis <=> rank 1
     axis_ratio = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
-    single_axis = axis_ratio < single_axis_ratio
+    axis_px = axis_disambiguation(rotvec, float(focal[0]), image_size)
+    single_axis = axis_ratio < single_axis_ratio and min(axis_px) < min_axis_disambiguation_px
     disambiguation = float(np.max(disambiguation_magnitude(rotvec, focal, image_size)))
     rel_sigma = float("nan")
     if sigma_f is not None:
@@ -147,4 +169,17 @@ def analyse_motion(
         axis_ratio=axis_ratio,
         disambiguation_px=disambiguation,
         relative_sigma_f=rel_sigma,
+        axis_disambiguation_px=axis_px,
+    )
+
+
+def second_axis_missing(report: MotionReport, min_px: float) -> str:
+    """Why a sequence is not yet well posed for a first solve (section 6), "" when it is: the
+    disambiguating term of eq. 30 about each camera axis must reach min_px (`axis_disambiguation`)."""
+    tilt, pan = report.axis_disambiguation_px
+    missing = [(name, px) for name, px in (("tilt (x)", tilt), ("pan (y)", pan)) if not px >= min_px]
+    if not missing:
+        return ""
+    return "waiting for rotation about the " + " and ".join(
+        f"{name} axis (disambiguating term {px:.2g} px < {min_px:.2g} px, 6.2)" for name, px in missing
     )
