@@ -39,7 +39,9 @@ the zoom encoder alone.
 - Uncertainty of log f: the weighted spline's own covariance at the zoom, scaled by the reduced
   chi-square when the samples scatter more than their sigmas say, plus the typical per-sample sigma
   near that zoom: the f / rotation near-ambiguity (section 6.2) makes one calibration's focal errors a
-  common scale factor that averaging its keyframes does not remove. Other quantities: per bin, the
+  common scale factor that averaging its keyframes does not remove; plus the samples' scatter about
+  the curve beyond their own sigmas (the zoom encoder's noise and lag: a predicted frame reads the
+  same encoder). Other quantities: per bin, the
   standard error of the bin mean combined with the spline's misfit.
 - Visited range: [lowest, highest] zoom of the samples (committed and live); `in_range` says so.
 - Persistence: YAML with a format name and version, written atomically (persist.atomic_file); any
@@ -70,6 +72,7 @@ Array = NDArray[np.float64]
 FORMAT_NAME = "ptz_selfcal_zoom_model"
 FORMAT_VERSION = 1
 QUANTITIES = ("log_f", "cx", "cy", "k1", "k2")
+_GAP_FRACTION = 0.1  # of the change of log f across a gap between samples: the curve's 1-sigma there
 _SUM_FIELDS = ("n", "w", "wz", *(f"w_{q}" for q in QUANTITIES), *(f"w2_{q}" for q in QUANTITIES))
 
 
@@ -417,6 +420,7 @@ class ZoomModel:
         slopes = (0.0, 0.0)
         log_f_cov = None
         offsets: dict[int, float] = {}
+        leverage = np.zeros(n_bins)
         # keep one degree of freedom for the misfit once there are 3 bins (an interpolating spline
         # would claim zero uncertainty)
         n_basis = min(n_bins if n_bins < 3 else n_bins - 1, self.max_basis)
@@ -449,6 +453,7 @@ class ZoomModel:
                     d = fit.spline.derivative()
                     slopes = (max(float(d(z.min())), 0.0), max(float(d(z.max())), 0.0))
                     log_f_cov = (fit.spline.t, fit.covariance, fit.spline.k, fitted)
+                    leverage = fit.leverage
                     offsets = {int(c): float(o) for c, o in zip(cal_ids, fit.offsets)}
             dof = n_bins - min(n_basis, n_bins)
             keep = robust > 0.5  # misfit of the points the fit trusts
@@ -462,13 +467,25 @@ class ZoomModel:
             # weights are 1 / sigma^2 (the calibrator's): one calibration's focal errors share a common
             # scale (section 6.2) that averaging its keyframes does not remove, only averaging over
             # calibrations. Unit weights (sigma unknown, 1/w = 100%) add nothing.
-            knots, cov, degree, _ = log_f_cov
+            knots, cov, degree, fitted = log_f_cov
             B = design_matrix(z, knots, degree)
             fit_var = np.einsum("ij,jk,ik->i", B, cov, B)
-            per_sample2 = n / w
-            per_sample2 = np.where(per_sample2 < 0.25, per_sample2, 0.0) / len(cal_ids)
+            own2 = n / w
+            known = own2 < 0.25
+            per_sample2 = np.where(known, own2, 0.0) / len(cal_ids)
+            # plus the samples' scatter about the curve beyond their own sigmas, each left out of the fit
+            # (its leave-one-out residual): the zoom encoder's noise and an unlearned lag, which a frame
+            # predicted from its own reading has as well, and the curve's error between samples
+            # (pooled, and at least each bin's own where the samples are sparse)
+            trusted = known & (robust > 0.5) & (leverage < 0.99)
+            excess2 = np.zeros(n_bins)
+            if np.sum(trusted) > 2:
+                loo = (mean[:, 0] - fitted) / (1.0 - np.where(trusted, leverage, 0.0))
+                own_excess = np.where(trusted, np.maximum(var[:, 0] + loo**2 - own2, 0.0), 0.0)
+                pooled = np.sum((n * own_excess)[trusted]) / np.sum(n[trusted])
+                excess2 = np.maximum(own_excess, pooled)
             if np.all(np.isfinite(fit_var)):
-                sigma["log_f"] = np.sqrt(fit_var + per_sample2)
+                sigma["log_f"] = np.sqrt(fit_var + per_sample2 + excess2)
         return _Fit(float(z.min()), float(z.max()), splines, constants, slopes, z, sigma, log_f_cov, offsets)
 
     def _fitted(self) -> _Fit:
@@ -486,6 +503,18 @@ class ZoomModel:
             value += fit.end_slopes[0] * (zoom - zc) if zoom < zc else fit.end_slopes[1] * (zoom - zc)
         return value
 
+    def _between_samples(self, fit: _Fit, zoom: float) -> float:
+        """1-sigma of log f for the curve between the two samples (bins) around zoom: a tenth of the change
+        of log f across the gap at its middle, zero at the samples (the curve is known only where it was
+        measured; a long gap, e.g. between the reference and the first keyframes of a fast zoom, can sag)."""
+        z = fit.bin_z
+        i = int(np.searchsorted(z, zoom))
+        if i <= 0 or i >= len(z) or not z[i] > z[i - 1]:
+            return 0.0
+        a, b = float(z[i - 1]), float(z[i])
+        change = abs(self._evaluate(fit, "log_f", b) - self._evaluate(fit, "log_f", a))
+        return _GAP_FRACTION * change * 4.0 * (zoom - a) * (b - zoom) / (b - a) ** 2
+
     def predict_parameters(self, zoom: float, zoom_rate: float = 0.0) -> dict[str, float]:
         """f, cx, cy, k1, k2 and their 1-sigma (sigma_f in pixels), plus in_range, at an encoder value
         (and its rate of change in counts / s, which the learned encoder lag turns into a zoom shift)."""
@@ -497,7 +526,8 @@ class ZoomModel:
         zc = min(max(zoom, fit.z_lo), fit.z_hi)
         sig = {name: float(np.interp(zc, fit.bin_z, s)) for name, s in fit.bin_sigma.items()}
         extrapolated = abs(self._evaluate(fit, "log_f", zoom) - self._evaluate(fit, "log_f", zc))
-        out["sigma_f"] = out["f"] * (sig["log_f"] + 0.5 * extrapolated)
+        sigma_log_f = math.hypot(sig["log_f"], self._between_samples(fit, zc))
+        out["sigma_f"] = out["f"] * (sigma_log_f + 0.5 * extrapolated)
         out["sigma_cx"], out["sigma_cy"] = sig["cx"], sig["cy"]
         out["sigma_k1"], out["sigma_k2"] = sig["k1"], sig["k2"]
         lo, hi = self.covered_range() or (fit.z_lo, fit.z_hi)

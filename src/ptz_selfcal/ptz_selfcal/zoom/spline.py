@@ -20,6 +20,7 @@ class SplineFit(NamedTuple):
     covariance: Array  # of the spline coefficients, scaled by the reduced chi-square (NaN without dof)
     dof: float  # points minus the effective number of parameters
     offsets: Array  # per group (empty without groups)
+    leverage: Array  # per point, of the unconstrained penalised estimate (leave-one-out residuals)
 
 
 def design_matrix(x: Array, knots: Array, degree: int) -> Array:
@@ -99,6 +100,8 @@ def penalised_spline(
         dof = len(z) - float(np.trace(M_inv @ XtWX))
     except np.linalg.LinAlgError:
         M_inv, dof = np.full((n_par, n_par), np.nan), 0.0
+    leverage = np.einsum("ij,jk,ik->i", X, M_inv, X) * wr
     chi2 = float(np.sum(wr * (y - fitted) ** 2))
     cov = M_inv[:n_basis, :n_basis] * (chi2 / dof) if dof > 0.5 else np.full((n_basis, n_basis), np.nan)
-    return SplineFit(BSpline(knots, c, degree, extrapolate=False), fitted, robust, cov, dof, offsets)
+    spline = BSpline(knots, c, degree, extrapolate=False)
+    return SplineFit(spline, fitted, robust, cov, dof, offsets, leverage)
