@@ -138,7 +138,7 @@ def measure(
     compressed = image_type == "sensor_msgs/msg/CompressedImage"
     diag = ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
     queue = ["-p", f"queue_policy:={policy}", "-p", f"queue_depth:={depth}"]
-    ingest = ["-p", f"input:={'compressed' if compressed else 'raw'}"]
+    ingest = ["-p", f"image_transport:={'compressed' if compressed else 'raw'}"]
     specs = [
         NodeSpec("frame_ingest", NODE_MODULES["frame_ingest"], [*diag, *queue, *ingest, *extra]),
         NodeSpec("homography_tracker", NODE_MODULES["homography_tracker"], [*diag, *queue]),

@@ -23,17 +23,13 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import TransformStamped  # noqa: E402
 from sensor_msgs.msg import CameraInfo  # noqa: E402
 
 from ptz_selfcal import topics  # noqa: E402
 from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation  # noqa: E402
 from ptz_selfcal.nodes.runtime import reliable_qos  # noqa: E402
-from ptz_selfcal.tools.launch import (  # noqa: E402
-    NODE_MODULES,
-    default_params_file,
-    load_params_file,
-    namespaced_params_file,
-)
+from ptz_selfcal.tools.launch import prepare  # noqa: E402
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches  # noqa: E402
 
 DOMAIN = 141
@@ -84,7 +80,7 @@ def fixed_lens_pan(n: int):
 
 class Harness:
     def __init__(self, name: str) -> None:
-        self.node = rclpy.create_node(name)
+        self.node = rclpy.create_node(name, namespace=topics.NAMESPACE)
         self.pub = self.node.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos())
         self.kf_pub = self.node.create_publisher(KeyframeMatches, topics.KEYFRAMES, reliable_qos())
         self.infos: dict[int, CameraInfo] = {}
@@ -190,16 +186,16 @@ class Harness:
         self.node.destroy_node()
 
 
-def shipped_params(directory: Path) -> Path:
-    """The shipped parameter file with its node keys matching any namespace (as `ptz-selfcal launch`)."""
+def shipped_params(directory: Path, namespace: str) -> Path:
+    """The shipped parameter file as `ptz-selfcal launch` gives it to the nodes in `namespace`."""
     directory.mkdir(parents=True, exist_ok=True)
-    return namespaced_params_file(load_params_file(default_params_file(), list(NODE_MODULES)), str(directory))
+    return prepare(None, namespace, [], str(directory))[0]
 
 
 def start_calibrator(namespace: str, params_dir: Path, *params: str) -> subprocess.Popen:
     """The calibrator on the shipped parameters, `params` (name:=value) overriding them."""
     args = [sys.executable, "-m", "ptz_selfcal.nodes.calibrator", "--ros-args", "-r", f"__ns:={namespace}"]
-    args += ["--params-file", str(shipped_params(params_dir))]
+    args += ["--params-file", str(shipped_params(params_dir, namespace))]
     for p in params:
         args += ["-p", p]
     args += ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
@@ -285,6 +281,12 @@ def test_calibrates_every_frame_survives_garbage_and_restores_state(ros, tmp_pat
             abs(math.hypot(fc.orientation.x, fc.orientation.y, fc.orientation.z, fc.orientation.w) - 1) < 1e-6
         )
         assert fc.encoders.zoom == pytest.approx(zoom[late[last]])  # the encoders go through as sent
+        # the same orientation as a transform: the camera's own frame in the reference frame (inverse R)
+        assert harness.spin_until(lambda: last in harness.transforms, 5.0)
+        tf = harness.transforms[last]
+        assert (tf.header.frame_id, tf.child_frame_id) == ("ptz_selfcal_reference", "ptz_selfcal_optical")
+        r, q = tf.transform.rotation, fc.orientation
+        np.testing.assert_allclose([r.x, r.y, r.z, r.w], [-q.x, -q.y, -q.z, q.w], atol=1e-9)
         # the garbage was counted in the diagnostics
         assert harness.spin_until(lambda: _diag_value(harness.diagnostics, "invalid_homographies") >= 3, 5.0)
         # a wrong homography at a still zoom (issue 7: the right view at a 25 % wrong image scale, as a
@@ -444,6 +446,13 @@ def _namespaced_harness(ns: str) -> Harness:
     harness.diagnostics = []
     node.create_subscription(CameraInfo, topics.CAMERA_INFO, harness.on_info, reliable_qos())
     node.create_subscription(FrameCalibration, topics.FRAME_CALIBRATION, harness.on_frame, reliable_qos())
+    harness.transforms = {}
+    node.create_subscription(
+        TransformStamped,
+        topics.ORIENTATION,
+        lambda m: harness.transforms.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m),
+        reliable_qos(),
+    )
     node.create_subscription(
         DiagnosticArray,
         "/" + ns.strip("/") + topics.DIAGNOSTICS,

@@ -42,7 +42,7 @@ class Harness:
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node("test_diagnostics", context=self.context)
+        self.node = rclpy.create_node("test_diagnostics", namespace=topics.NAMESPACE, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.raw = self.node.create_publisher(Image, topics.IMAGE_RAW, reliable_qos())
@@ -219,3 +219,15 @@ def harness_env() -> dict[str, str]:
     import os
 
     return dict(os.environ)  # ros_env (through the harness fixture) has set the domain and discovery
+
+
+def test_a_configuration_error_is_an_error_status_then_exit_2(harness: Harness, start_process) -> None:
+    """A node that cannot start says so where a diagnostics monitor looks, under its own name, before it
+    exits with its configuration-error status (which `launch` does not restart)."""
+    args = (*INGEST_ARGS, "-p", "working_width:=-5", "-p", "camera_name:=cam7")
+    proc = start_process(node_command(INGEST, *args), harness_env(), "bad_config")
+    report = harness.wait_report("frame_ingest", lambda r: True, timeout=30.0)
+    assert report.level == level("ERROR"), report
+    assert "configuration error" in report.message and "working_width" in report.message, report
+    assert report.hardware_id == "cam7"
+    assert proc.wait(30.0) == 2, proc.output()

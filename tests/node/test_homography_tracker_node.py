@@ -55,7 +55,7 @@ class Harness:
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node("test_tracker", context=self.context)
+        self.node = rclpy.create_node("test_tracker", namespace=topics.NAMESPACE, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.homographies: list = []

@@ -77,16 +77,16 @@ def wait_started(proc, count: int, timeout: float = 20.0) -> dict[str, list[int]
 def test_three_processes_ctrl_c_stops_all_with_exit_0(launch_env, start_process):
     env, extra = launch_env
     proc = start_process(
-        cli_command("launch", "--namespace", "/cam7", "--remap", "ptz/image_raw:=camera/image", *extra),
+        cli_command("launch", "--namespace", "/cam7", "--remap", "image_raw:=camera/image", *extra),
         env,
         "launch",
     )
     pids = wait_started(proc, 3)
     assert set(pids) == set(NODES) and len({p[0] for p in pids.values()}) == 3
-    nodes, topic_names = graph_nodes("/cam7", 60.0, ["/cam7/ptz/selfcal/camera_info", "/cam7/camera/image"])
+    nodes, topic_names = graph_nodes("/cam7", 60.0, ["/cam7/selfcal/camera_info", "/cam7/camera/image"])
     assert set(NODES) <= nodes, proc.output()
-    assert "/cam7/camera/image" in topic_names and "/cam7/ptz/image_raw" not in topic_names  # remapped
-    assert "/cam7/ptz/selfcal/camera_info" in topic_names
+    assert "/cam7/camera/image" in topic_names and "/cam7/image_raw" not in topic_names  # remapped
+    assert "/cam7/selfcal/camera_info" in topic_names
     assert proc.alive()
     assert proc.stop(timeout=20.0) == 0, proc.output()
     for name, (pid,) in pids.items():

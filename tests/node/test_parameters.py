@@ -9,6 +9,8 @@ import time
 import pytest
 from conftest import NodeProcess, node_command
 
+from ptz_selfcal.topics import NAMESPACE
+
 ROS_DOMAIN_ID = 120
 NODES = {
     "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
@@ -25,9 +27,9 @@ class ParamClient:
 
         self.node = node
         self.executor = executor
-        self.set = node.create_client(SetParameters, f"/{name}/set_parameters")
-        self.get = node.create_client(GetParameters, f"/{name}/get_parameters")
-        self.describe = node.create_client(DescribeParameters, f"/{name}/describe_parameters")
+        self.set = node.create_client(SetParameters, f"{NAMESPACE}/{name}/set_parameters")
+        self.get = node.create_client(GetParameters, f"{NAMESPACE}/{name}/get_parameters")
+        self.describe = node.create_client(DescribeParameters, f"{NAMESPACE}/{name}/describe_parameters")
 
     def wait(self, timeout: float) -> bool:
         return all(c.wait_for_service(timeout_sec=timeout) for c in (self.set, self.get, self.describe))
@@ -126,13 +128,15 @@ def test_out_of_range_set_is_refused_and_the_old_value_stays(clients) -> None:
 
 
 def test_describe_parameters_returns_ranges_and_choices(clients) -> None:
-    ingest = clients["frame_ingest"].descriptors("encoder_time_offset", "queue_depth", "input", "camera_name")
+    ingest = clients["frame_ingest"].descriptors(
+        "encoder_time_offset", "queue_depth", "image_transport", "camera_name"
+    )
     (offset,) = ingest["encoder_time_offset"].floating_point_range
     assert (offset.from_value, offset.to_value) == (-60.0, 60.0)
     (depth,) = ingest["queue_depth"].integer_range
     assert (depth.from_value, depth.to_value) == (1, 1000)
-    assert "one of: raw, compressed, both" in ingest["input"].description
-    assert ingest["input"].additional_constraints == "one of: raw, compressed, both"
+    assert "one of: raw, compressed, both" in ingest["image_transport"].description
+    assert ingest["image_transport"].additional_constraints == "one of: raw, compressed, both"
     assert not ingest["camera_name"].floating_point_range and not ingest["camera_name"].integer_range
 
     tracker = clients["homography_tracker"].descriptors("tracker.min_inlier_ratio", "tracker.max_features")
@@ -161,7 +165,7 @@ def test_every_numeric_parameter_of_the_three_nodes_has_its_range(clients) -> No
     }
     checked = 0
     for name, client in clients.items():
-        lister = client.node.create_client(ListParameters, f"/{name}/list_parameters")
+        lister = client.node.create_client(ListParameters, f"{NAMESPACE}/{name}/list_parameters")
         assert lister.wait_for_service(timeout_sec=30.0)
         names = [
             n

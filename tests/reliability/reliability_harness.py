@@ -129,7 +129,9 @@ def start_graph(
     # shipped live default sheds a frame the nodes fall 50 behind on)
     lossless = "queue_policy:=lossless"
     extra = {
-        "frame_ingest": params("sensor_reliability:=reliable", lossless, *width, *ingest),
+        "frame_ingest": params(
+            "sensor_reliability:=reliable", "image_transport:=both", lossless, *width, *ingest
+        ),
         "homography_tracker": params(lossless, *tracker),
         "calibrator": params(*calibrator),
     }
@@ -176,7 +178,7 @@ class Feeder:
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
+        self.node = rclpy.create_node(name, namespace=topics.NAMESPACE, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         qos = sensor_qos or reliable_qos()

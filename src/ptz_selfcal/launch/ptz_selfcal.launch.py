@@ -1,48 +1,57 @@
 """ROS 2 launch file of the ptz_selfcal node suite, for users with a full ROS install:
-    ros2 launch ptz_selfcal ptz_selfcal.launch.py [params_file:=FILE] [namespace:=/cam1]
-Here, without launch/launch_ros, `ptz-selfcal launch` does the same (tools/launch.py).
+    ros2 launch ptz_selfcal ptz_selfcal.launch.py [namespace:=/cam1] [camera_name:=cam1]
+        [params_file:=FILE] [remappings:="image_raw:=camera/image joint_states:=/head/joints"]
+Here, without launch/launch_ros, `ptz-selfcal launch` does the same: both take their node list (names,
+namespace, parameters, remappings) from ptz_selfcal.tools.launch.plan_suite, so they start the same graph
+(tests/unit/test_launch_params.py checks this file's actions against it with stand-ins for launch).
 
-Each node is the package's executable of the same name (setup.py installs them into lib/ptz_selfcal,
-where `ros2 run ptz_selfcal <name>` finds them). The parameter file has one top-level key per node name
-(config/ptz_selfcal.yaml); it is rewritten with /**/<name> keys so that the sections apply under any
-namespace. Nodes that die are respawned.
+Each node is the package's executable of the same name (setup.py installs them into lib/ptz_selfcal).
+The parameters go to each node as the dictionary plan_suite resolved for its fully qualified name (no
+rewritten copy of the parameter file). Nodes that die are respawned, except after a configuration error
+(exit status 2), which ends the launch: restarting cannot help.
 """
 
 import os
-import tempfile
 
-import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, RegisterEventHandler, Shutdown
+from launch.event_handlers import OnProcessExit
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-NODES = ("frame_ingest", "homography_tracker", "calibrator")
+from ptz_selfcal.tools.launch import CONFIG_ERROR_STATUS, NODE_MODULES, load_params_file, plan_suite
+
+
+def _on_exit(event, context):
+    if event.returncode == CONFIG_ERROR_STATUS:
+        return [Shutdown(reason=f"{event.action.name}: configuration error (exit status 2)")]
+    return []
 
 
 def _nodes(context, *args, **kwargs):
-    params_file = LaunchConfiguration("params_file").perform(context)
-    namespace = LaunchConfiguration("namespace").perform(context)
-    with open(params_file) as stream:
-        sections = yaml.safe_load(stream) or {}
-    rewritten = {(k if str(k).startswith("/") else f"/**/{k}"): v for k, v in sections.items()}
-    handle, path = tempfile.mkstemp(prefix="ptz_selfcal_params_", suffix=".yaml")
-    with os.fdopen(handle, "w") as stream:
-        yaml.safe_dump(rewritten, stream)
-    return [
-        Node(
+    def value(name):
+        return LaunchConfiguration(name).perform(context)
+
+    data = load_params_file(value("params_file"), list(NODE_MODULES))
+    plan = plan_suite(
+        data, value("namespace") or None, value("remappings").split(), value("camera_name") or None
+    )
+    actions = []
+    for planned in plan:
+        node = Node(
             package="ptz_selfcal",
-            executable=name,
-            name=name,
-            namespace=namespace,
-            parameters=[path],
+            executable=planned.name,
+            name=planned.name,
+            namespace=planned.namespace,
+            parameters=[planned.parameters],
+            remappings=list(planned.remappings),
             output="screen",
             respawn=True,
             respawn_delay=1.0,
         )
-        for name in NODES
-    ]
+        actions += [node, RegisterEventHandler(OnProcessExit(target_action=node, on_exit=_on_exit))]
+    return actions
 
 
 def generate_launch_description():
@@ -50,7 +59,17 @@ def generate_launch_description():
     return LaunchDescription(
         [
             DeclareLaunchArgument("params_file", default_value=default_params, description="parameter YAML"),
-            DeclareLaunchArgument("namespace", default_value="", description="namespace, e.g. /cam1"),
+            DeclareLaunchArgument(
+                "namespace", default_value="", description="the camera's namespace (default /ptz)"
+            ),
+            DeclareLaunchArgument(
+                "camera_name",
+                default_value="",
+                description="diagnostics hardware_id (default: the file's, else the namespace's last part)",
+            ),
+            DeclareLaunchArgument(
+                "remappings", default_value="", description="space-separated FROM:=TO topic remappings"
+            ),
             OpaqueFunction(function=_nodes),
         ]
     )

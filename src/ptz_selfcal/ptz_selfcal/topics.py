@@ -1,7 +1,12 @@
 """The topic and bag contract of ptz_selfcal (DESIGN.md section 3). Every node, tool and test uses these.
 
-Names are relative so that a namespace (one node suite per camera, e.g. /cam1) prefixes them; in bags
-they are stored with a leading slash (the default namespace).
+The suite runs in the camera's namespace (NAMESPACE, /ptz by default; one suite per camera, e.g. /cam1),
+where a driver's image_raw lives, so every name below is relative to it except DIAGNOSTICS (absolute, as
+ROS's diagnostics tools expect). In bags the names are stored resolved in the default namespace
+(bag_topic: /ptz/image_raw, /ptz/selfcal/camera_info, ...), as bags recorded elsewhere have them.
+IMAGE_RELAY (+ CAMERA_INFO beside it) is the camera pair an image_transport CameraSubscriber such as
+image_proc finds: frame_ingest republishes each ingested image there, header and bytes unchanged
+(IMAGE_RELAY_COMPRESSED when the input transport is compressed).
 
 Input (a live camera, or a bag from `ptz-selfcal synth`):
 - IMAGE_RAW: sensor_msgs/Image (mono8, bgr8, rgb8, mono16), or IMAGE_COMPRESSED: sensor_msgs/CompressedImage
@@ -24,21 +29,28 @@ Pipeline (ptz_selfcal_msgs):
 - CAMERA_INFO: sensor_msgs/CameraInfo, exactly one per processed image, header copied from the image,
   full-resolution width/height, K, P = [K|0], R = I, plumb_bob D = [k1, k2, 0, 0, 0].
 - FRAME_CALIBRATION: FrameCalibration (status, uncertainty, orientation, encoders).
+- ORIENTATION: geometry_msgs/TransformStamped per frame whose orientation is known, the image's stamp:
+  the camera (child_frame) in the calibration's reference frame (reference_frame), rotation only (tf2_msgs
+  for /tf is not among this environment's packages; a tf relay can republish it).
 - DIAGNOSTICS: diagnostic_msgs/DiagnosticArray.
 """
 
-IMAGE_RAW = "ptz/image_raw"
-IMAGE_COMPRESSED = "ptz/image_raw/compressed"
-JOINT_STATES = "ptz/joint_states"
-GT_CAMERA_INFO = "ptz/ground_truth/camera_info"
-GT_JOINT_STATES = "ptz/ground_truth/joint_states"
-GT_MOVING_MASK = "ptz/ground_truth/moving_mask"  # mono8 Image per image, same header: 255 on moving objects
-FRAME_IN = "ptz/selfcal/frame_in"
-HOMOGRAPHY = "ptz/selfcal/homography"
-KEYFRAMES = "ptz/selfcal/keyframes"
-CAMERA_INFO = "ptz/selfcal/camera_info"
-FRAME_CALIBRATION = "ptz/selfcal/frame"
-MOSAIC = "ptz/selfcal/mosaic"  # sensor_msgs/CompressedImage: the live mosaic (nodes/mosaic_node.py)
+NAMESPACE = "/ptz"
+IMAGE_RAW = "image_raw"
+IMAGE_COMPRESSED = "image_raw/compressed"
+JOINT_STATES = "joint_states"
+GT_CAMERA_INFO = "ground_truth/camera_info"
+GT_JOINT_STATES = "ground_truth/joint_states"
+GT_MOVING_MASK = "ground_truth/moving_mask"  # mono8 Image per image, same header: 255 on moving objects
+FRAME_IN = "selfcal/frame_in"
+HOMOGRAPHY = "selfcal/homography"
+KEYFRAMES = "selfcal/keyframes"
+CAMERA_INFO = "selfcal/camera_info"
+FRAME_CALIBRATION = "selfcal/frame"
+MOSAIC = "selfcal/mosaic"  # sensor_msgs/CompressedImage: the live mosaic (nodes/mosaic_node.py)
+ORIENTATION = "selfcal/orientation"  # geometry_msgs/TransformStamped: the camera in the reference frame
+IMAGE_RELAY = "selfcal/image_raw"
+IMAGE_RELAY_COMPRESSED = "selfcal/image_raw/compressed"
 DIAGNOSTICS = "/diagnostics"
 
 CAMERA_FRAME_ID = "ptz_camera"
@@ -57,10 +69,21 @@ TYPES = {
     KEYFRAMES: "ptz_selfcal_msgs/msg/KeyframeMatches",
     CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
     FRAME_CALIBRATION: "ptz_selfcal_msgs/msg/FrameCalibration",
+    ORIENTATION: "geometry_msgs/msg/TransformStamped",
+    IMAGE_RELAY: "sensor_msgs/msg/Image",
+    IMAGE_RELAY_COMPRESSED: "sensor_msgs/msg/CompressedImage",
     DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
 }
 
 
+def resolve(name: str, namespace: str = NAMESPACE) -> str:
+    """The absolute name of a topic in `namespace` (absolute names stay as they are)."""
+    if name.startswith("/"):
+        return name
+    ns = namespace.strip("/")
+    return f"/{ns}/{name}" if ns else f"/{name}"
+
+
 def bag_topic(name: str) -> str:
-    """The topic name as stored in a bag recorded in the default namespace."""
-    return name if name.startswith("/") else "/" + name
+    """The topic name as stored in bags: resolved in the default namespace."""
+    return resolve(name, NAMESPACE)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import Quaternion
+from geometry_msgs.msg import Quaternion, TransformStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
 
@@ -65,7 +65,8 @@ PARAMS = params_from(CalibratorNodeConfig) + params_from(SessionConfig)
 
 class CalibratorNode(Node):
     def __init__(self, **kwargs: Any) -> None:
-        super().__init__("calibrator", **kwargs)
+        # in the camera's namespace unless launched into another (__ns remap, or a namespace argument)
+        super().__init__("calibrator", **{"namespace": topics.NAMESPACE, **kwargs})
         p = declare_params(self, PARAMS)
         if p["focal_model"] == "constant" and p["ba_principal_point"] == "varying":
             # a fixed lens has one K for every image: the session would silently ignore it
@@ -100,6 +101,9 @@ class CalibratorNode(Node):
 
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
+        self._orientation_pub = self.create_publisher(TransformStamped, topics.ORIENTATION, reliable_qos(10))
+        self._reference_frame = p["reference_frame"] or f"{p['camera_name']}_selfcal_reference"
+        self._child_frame = p["child_frame"] or f"{p['camera_name']}_selfcal_optical"
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
         # matches first: when both are waiting, the executor takes a keyframe's matches before the next
         # frame's homography (inline_solves then solves with them, whatever the arrival order)
@@ -215,6 +219,15 @@ class CalibratorNode(Node):
         if out.R is not None:
             q = quaternion_from_matrix(out.R)
             fc.orientation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+            # R maps reference coordinates to camera ones (section 3.3.1); a transform gives the child's
+            # pose in the parent: the inverse rotation
+            transform = TransformStamped()
+            transform.header.stamp = msg.header.stamp
+            transform.header.frame_id = self._reference_frame
+            transform.child_frame_id = self._child_frame
+            x, y, z, w = quaternion_from_matrix(out.R.T)
+            transform.transform.rotation = Quaternion(x=float(x), y=float(y), z=float(z), w=float(w))
+            self._orientation_pub.publish(transform)
         else:  # unknown orientation: the (invalid) zero quaternion says so
             fc.orientation = Quaternion(x=0.0, y=0.0, z=0.0, w=0.0)
         fc.encoders = msg.encoders

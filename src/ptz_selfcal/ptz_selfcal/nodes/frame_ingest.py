@@ -1,8 +1,13 @@
 """frame_ingest node: camera images + PTZ encoders in, IngestedFrame (mono8, working size) out.
 
-Subscribes topics.IMAGE_RAW and/or topics.IMAGE_COMPRESSED (parameter `input`) and topics.JOINT_STATES;
-publishes one IngestedFrame per usable image on topics.FRAME_IN with the encoders interpolated to the
-image stamp (frontend/encoders.py), the full-resolution size and the working scale; DiagnosticArray on
+Subscribes one image transport, as image_transport does (parameter `image_transport`: topics.IMAGE_RAW
+or topics.IMAGE_COMPRESSED), and topics.JOINT_STATES; publishes one IngestedFrame per usable image on
+topics.FRAME_IN with the encoders interpolated to the image stamp (frontend/encoders.py), the
+full-resolution size and the working scale, and relays that image, serialized bytes unchanged, on
+topics.IMAGE_RELAY (or IMAGE_RELAY_COMPRESSED): with the calibrator's CameraInfo of the same header the
+camera pair a CameraSubscriber (image_proc) finds. This node relays, not the calibrator, because it
+holds the image already: the calibrator would need a second full-resolution subscription and a buffer
+to match it to its output. The relay is published only while it has subscribers; DiagnosticArray on
 topics.DIAGNOSTICS (STALE while images or encoder messages do not arrive, ERROR while every one is
 unusable). Unusable images (unsupported or lying encoding, step/size mismatch, zero or huge
 size, undecodable compressed data, truncated messages, duplicate stamps) are counted per kind, logged once
@@ -15,6 +20,8 @@ so frames never wait behind a backlog of them. Run:
 
 from __future__ import annotations
 
+import itertools
+import math
 import sys
 import time
 from collections import Counter, deque
@@ -28,7 +35,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image, JointState
-from std_msgs.msg import Header
+from std_msgs.msg import Float64, Header
 
 from ptz_selfcal import topics
 from ptz_selfcal.frontend.encoders import EncoderConfig, EncoderInterpolator, QueryStatus
@@ -63,10 +70,20 @@ from ptz_selfcal_msgs.msg import IngestedFrame
 
 PARAMS = [
     Param(
-        "input",
-        "both",
-        "which image topics to subscribe: raw, compressed or both",
+        "image_transport",
+        "raw",
+        "the image topic subscribed, as image_transport's: raw (image_raw) or compressed "
+        "(image_raw/compressed); both: each image once from whichever copy comes first (sources that mix "
+        "transports)",
         one_of("raw", "compressed", "both"),
+    ),
+    Param(
+        "relay_image",
+        True,
+        "republish each ingested image on selfcal/image_raw (compressed: selfcal/image_raw/compressed), "
+        "header and bytes unchanged, so that it and selfcal/camera_info are a camera pair (only while "
+        "subscribed)",
+        None,
     ),
     Param(
         "sensor_reliability",
@@ -94,7 +111,27 @@ PARAMS = [
         "target width of the working image; the node downscales by the nearest integer factor (0: full size)",
         in_range(0, 100_000),
     ),
-    Param("joint_names", ["pan", "tilt", "zoom"], "JointState names of the pan, tilt and zoom joints", None),
+    Param(
+        "joint_names",
+        ["pan", "tilt", "zoom"],
+        "JointState names of the pan, tilt and zoom joints (as the driver names them, e.g. axis_pan_joint); "
+        "two names: joint_states has no zoom (it comes from zoom_topic, or there is none: zoom NaN)",
+        None,
+    ),
+    Param(
+        "zoom_topic",
+        "",
+        "topic of the zoom encoder when the driver publishes it apart from joint_states (relative to the "
+        "namespace; empty: none)",
+        None,
+    ),
+    Param(
+        "zoom_topic_type",
+        "joint_state",
+        "zoom_topic's type: joint_state (the zoom joint, or its only position; header stamp) or float64 "
+        "(std_msgs/Float64, stamped on arrival with this node's clock)",
+        one_of("joint_state", "float64"),
+    ),
     Param(
         "encoder_time_offset",
         0.0,
@@ -108,6 +145,14 @@ PARAMS = [
         0.5,
         "seconds: encoder samples further apart do not bracket a stamp",
         in_range(1e-3, 60.0),
+    ),
+    Param(
+        "encoder_extrapolate_slow",
+        True,
+        "encoders slower than encoder_wait (e.g. 1 Hz heads): frames do not wait for the next sample; their "
+        "value is extrapolated up to 1.5 encoder periods past the newest one (counted: "
+        "frames_encoders_extrapolated). encoder_max_gap grows to 2.5 periods whatever this says",
+        None,
     ),
     Param(
         "encoder_max_hold",
@@ -175,6 +220,7 @@ _MAX_HEADER_BYTES = 65536  # serialized header, frame_id, encoding/format: more 
 
 
 _MAX_DRAIN = 1000  # encoder messages taken at once (bounds one callback's time)
+_NO_ZOOM = "(no zoom encoder)"
 
 
 def _take(subscription: Any) -> Any:
@@ -197,18 +243,26 @@ class _Pending:
     frame: WorkingImage
     header: Any
     arrived: float  # monotonic
+    raw: bytes | None = None  # the serialized input image, for the relay
+    compressed: bool = False
 
 
 class FrameIngest(Node):
     def __init__(self, **kwargs: Any) -> None:
-        super().__init__("frame_ingest", **kwargs)
+        # in the camera's namespace unless launched into another (__ns remap, or a namespace argument)
+        super().__init__("frame_ingest", **{"namespace": topics.NAMESPACE, **kwargs})
         p = declare_params(self, PARAMS)
         names = list(p["joint_names"])
-        if len(names) != 3 or len(set(names)) != 3 or not all(isinstance(n, str) and n for n in names):
-            raise ConfigError(f"parameter joint_names must be three distinct names, got {names}")
+        if len(names) not in (2, 3) or len(set(names)) != len(names) or not all(names):
+            raise ConfigError(f"parameter joint_names must be two or three distinct names, got {names}")
         self._p = p
+        # joint_states carries pan, tilt and (with three names and no zoom_topic) zoom; a zoom of its own
+        # topic goes into the interpolator under the third name (or "zoom"); no zoom at all: a stand-in
+        # joint held at 0 beside every pan/tilt sample, published as NaN
+        self._zoom_joint = names[2] if len(names) == 3 else "zoom" if p["zoom_topic"] else _NO_ZOOM
+        self._state_joints = tuple(names) if len(names) == 3 and not p["zoom_topic"] else tuple(names[:2])
         self._encoder_config = EncoderConfig(
-            joints=(names[0], names[1], names[2]),
+            joints=(names[0], names[1], self._zoom_joint),
             time_offset=p["encoder_time_offset"],
             max_gap=p["encoder_max_gap"],
             max_hold=p["encoder_max_hold"],
@@ -219,6 +273,8 @@ class FrameIngest(Node):
             self._encoders = EncoderInterpolator(self._encoder_config)
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
+        self._encoder_stamps: deque[float] = deque(maxlen=9)  # recent joint_states stamps
+        self._encoder_period: float | None = None
         self._limits = ImageLimits(p["max_image_pixels"], p["max_image_bytes"], p["mono16_max"])
         self._working_width = p["working_width"]
         self._wait = p["encoder_wait"]
@@ -246,9 +302,20 @@ class FrameIngest(Node):
         out_qos = reliable_qos() if p["queue_policy"] == "lossless" else reliable_qos(p["queue_depth"])
         self._pub = self.create_publisher(IngestedFrame, topics.FRAME_IN, out_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        # KEEP_LAST: a slow consumer of the relay never backs full-resolution images up in this process
+        relay_qos = reliable_qos(p["queue_depth"])
+        self._relays: dict[bool, Any] = {}  # compressed? -> its relay publisher
+        for compressed, msg_type, name in (
+            (False, Image, topics.IMAGE_RELAY),
+            (True, CompressedImage, topics.IMAGE_RELAY_COMPRESSED),
+        ):
+            if p["relay_image"] and p["image_transport"] in ("compressed" if compressed else "raw", "both"):
+                self._relays[compressed] = self.create_publisher(
+                    msg_type, name, relay_qos, qos_overriding_options=qos_overrides()
+                )
         # raw=True: the callback gets the serialized message, whose header is read in place, so a huge image
         # is refused before any copy of its pixels and a good one is converted without rclpy's two copies
-        if p["input"] in ("raw", "both"):
+        if p["image_transport"] in ("raw", "both"):
             self.create_subscription(
                 Image,
                 topics.IMAGE_RAW,
@@ -257,13 +324,21 @@ class FrameIngest(Node):
                 raw=True,
                 qos_overriding_options=qos_overrides(),
             )
-        if p["input"] in ("compressed", "both"):
+        if p["image_transport"] in ("compressed", "both"):
             self.create_subscription(
                 CompressedImage,
                 topics.IMAGE_COMPRESSED,
                 self._on_compressed,
                 sensor,
                 raw=True,
+                qos_overriding_options=qos_overrides(),
+            )
+        if p["zoom_topic"]:
+            self.create_subscription(
+                Float64 if p["zoom_topic_type"] == "float64" else JointState,
+                p["zoom_topic"],
+                self._on_zoom,
+                encoder_qos,
                 qos_overriding_options=qos_overrides(),
             )
         self._joint_sub = self.create_subscription(
@@ -286,8 +361,9 @@ class FrameIngest(Node):
         # OpenCV's own warnings about corrupt data would repeat per frame: we count and log them ourselves.
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
         self.get_logger().info(
-            f"input={p['input']} ({p['sensor_reliability']}, {p['queue_policy']}), "
-            f"working_width={self._working_width}, joints={names}, encoder offset "
+            f"image_transport={p['image_transport']} ({p['sensor_reliability']}, {p['queue_policy']}), "
+            f"working_width={self._working_width}, joints={names}"
+            f"{f' + {self._zoom_joint} on ' + p['zoom_topic'] if p['zoom_topic'] else ''}, encoder offset "
             f"{p['encoder_time_offset']:+.3f} s -> {self._pub.topic_name}"
         )
 
@@ -319,13 +395,15 @@ class FrameIngest(Node):
         self._counts["frames_in_raw"] += 1
         msg = self._read(data, Image)
         if msg is not None:
-            self._ingest(msg, lambda: image_to_working(msg, self._working_width, self._limits))
+            self._ingest(msg, lambda: image_to_working(msg, self._working_width, self._limits), data, False)
 
     def _on_compressed(self, data: bytes) -> None:
         self._counts["frames_in_compressed"] += 1
         msg = self._read(data, CompressedImage)
         if msg is not None:
-            self._ingest(msg, lambda: compressed_to_working(msg, self._working_width, self._limits))
+            self._ingest(
+                msg, lambda: compressed_to_working(msg, self._working_width, self._limits), data, True
+            )
 
     def _read(self, data: bytes, msg_type: Any) -> Any:
         """A received serialized image with its header fields readable (pixels not copied); None (counted
@@ -355,7 +433,7 @@ class FrameIngest(Node):
             self._skip("malformed", f"{msg_type.__name__}: {type(exc).__name__}: {exc}")
             return None
 
-    def _ingest(self, msg: Any, convert: Any) -> None:
+    def _ingest(self, msg: Any, convert: Any, data: bytes, compressed: bool) -> None:
         self._counts["frames_in"] += 1
         header = _header_of(msg)
         stamp_ns = stamp_to_ns(header.stamp)
@@ -382,7 +460,7 @@ class FrameIngest(Node):
         # The latest image (not the largest stamp) is the reference of the encoders' far-future check, so
         # one image with a wild stamp does not disable the check for good.
         self._newest_image_time = t
-        self._pending.append(_Pending(frame, header, time.monotonic()))
+        self._pending.append(_Pending(frame, header, time.monotonic(), data, compressed))
         self._flush_pending()
 
     def _note_interval(self, t: float) -> None:
@@ -427,19 +505,61 @@ class FrameIngest(Node):
                 "encoder_bad_message", f"JointState with {len(names)} names and {len(positions)} positions"
             )
             return
-        missing = [j for j in self._encoder_config.joints if j not in names]
-        if len(missing) == 3:
-            self._note(
-                "encoder_no_known_joint", f"JointState without any of {list(self._encoder_config.joints)}"
-            )
+        missing = [j for j in self._state_joints if j not in names]
+        if len(missing) == len(self._state_joints):
+            self._note("encoder_no_known_joint", f"JointState without any of {list(self._state_joints)}")
             return
         if missing:
             self._note("encoder_missing_joints", f"JointState without {missing} (the others are used)")
-        rejected = self._encoders.add_arrays(
-            stamp_to_sec(msg.header.stamp), names, positions, self._newest_image_time
-        )
-        for joint, reason in rejected:
+        stamp = stamp_to_sec(msg.header.stamp)
+        values = {n: v for n, v in zip(names, positions) if n in self._state_joints}
+        if self._zoom_joint == _NO_ZOOM:
+            values[_NO_ZOOM] = 0.0
+        self._store(stamp, values)
+        self._note_encoder_period(stamp)
+
+    def _store(self, stamp: float, values: dict[str, float]) -> None:
+        for joint, reason in self._encoders.add(stamp, values, self._newest_image_time):
             self._note(f"encoder_rejected_{reason.value}", f"{joint} sample rejected ({reason.value})")
+
+    def _on_zoom(self, msg: Any) -> None:
+        """The zoom encoder of its own topic (a driver such as axis_camera publishes it apart)."""
+        self._counts["zoom_messages"] += 1
+        if isinstance(msg, Float64):
+            stamp, value = self.get_clock().now().nanoseconds * 1e-9, msg.data
+        else:
+            names, positions = list(msg.name), list(msg.position)
+            if self._zoom_joint in names and len(positions) == len(names):
+                value = positions[names.index(self._zoom_joint)]
+            elif len(positions) == 1:
+                value = positions[0]
+            else:
+                self._note("zoom_no_value", f"zoom JointState without {self._zoom_joint} or one position")
+                return
+            stamp = stamp_to_sec(msg.header.stamp)
+        self._store(stamp, {self._zoom_joint: float(value)})
+        self._flush_pending()
+
+    def _note_encoder_period(self, stamp: float) -> None:
+        """The encoders' own period (median of recent joint_states intervals) sets how far apart samples
+        may bracket a stamp and, for heads slower than encoder_wait, how far a frame's value is
+        extrapolated instead of waiting a period for the next sample."""
+        if self._encoder_stamps and stamp <= self._encoder_stamps[-1]:
+            return
+        self._encoder_stamps.append(stamp)
+        if len(self._encoder_stamps) < 4:
+            return
+        ordered = list(self._encoder_stamps)
+        intervals = sorted(b - a for a, b in itertools.pairwise(ordered))
+        period = intervals[len(intervals) // 2]
+        self._encoder_period = period
+        gap = max(self._p["encoder_max_gap"], min(60.0, 2.5 * period))
+        hold = self._p["encoder_max_hold"]
+        if self._p["encoder_extrapolate_slow"] and period > self._wait:
+            hold = max(hold, min(10.0, 1.5 * period))
+        config = self._encoders.config
+        if (config.max_gap, config.max_hold) != (gap, hold):
+            self._encoders.config = replace(config, max_gap=gap, max_hold=hold)
 
     # ------------------------------------------------------------------ output
     def _flush_pending(self) -> None:
@@ -493,19 +613,31 @@ class FrameIngest(Node):
         msg.scale = frame.scale
         msg.encoders.pan = query.pan
         msg.encoders.tilt = query.tilt
-        msg.encoders.zoom = query.zoom
+        msg.encoders.zoom = math.nan if self._zoom_joint == _NO_ZOOM else query.zoom
         msg.encoders.valid = query.valid
+        newest = self._encoders.newest_stamp()
+        if query.valid and newest is not None and stamp_to_sec(item.header.stamp) > newest:
+            self._counts["frames_encoders_extrapolated"] += 1  # past the newest sample: a prediction
         if not query.valid:
             self._counts[f"encoders_invalid_{query.status.value.lower()}"] += 1
         msg.seq = self._seq
         self._seq += 1
         self._pub.publish(msg)
         self._counts["frames_out"] += 1
+        relay = self._relays.get(item.compressed)
+        # only while subscribed: without readers the writer would still copy every full-resolution image
+        if relay is not None and item.raw is not None and relay.get_subscription_count() > 0:
+            relay.publish(item.raw)
+            self._counts["frames_relayed"] += 1
 
     def _publish_diagnostics(self) -> None:
         counters: dict[str, Any] = {"frames_in": 0, "frames_out": 0}
         counters.update(sorted(self._counts.items()))
         counters["encoder_samples_accepted"] = self._encoders.samples_accepted
+        if self._encoder_period is not None:
+            counters["encoder_period_s"] = f"{self._encoder_period:.3f}"
+        counters["encoder_max_gap_s"] = f"{self._encoders.config.max_gap:.3f}"
+        counters["encoder_max_hold_s"] = f"{self._encoders.config.max_hold:.3f}"
         counters["encoder_samples_rejected"] = sum(self._encoders.rejections.values())
         counters["pending_frames"] = len(self._pending)
         # matched on this side (what a frame published now reaches), so a graph's readiness is observable
@@ -530,7 +662,7 @@ class FrameIngest(Node):
                 if k.startswith("skipped_") and k != "skipped_duplicate_stamp"
             )
             error.append(f"the last {bad_run} images were all unusable ({', '.join(unusable)})")
-        joints = list(self._encoder_config.joints)
+        joints = list(self._state_joints)
         encoder_run = self._bad_encoders.update(
             self._counts["encoder_messages"], self._counts["encoder_no_known_joint"]
         )

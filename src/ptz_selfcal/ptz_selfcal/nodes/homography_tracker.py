@@ -183,7 +183,8 @@ def _tracker_check(name: str, default: Any) -> Any:
 
 class HomographyTrackerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
-        super().__init__("homography_tracker", **kwargs)
+        # in the camera's namespace unless launched into another (__ns remap, or a namespace argument)
+        super().__init__("homography_tracker", **{"namespace": topics.NAMESPACE, **kwargs})
         p = declare_params(self, PARAMS)
         tracker_values = declare_params(self, tracker_params())
         config_kwargs = {}

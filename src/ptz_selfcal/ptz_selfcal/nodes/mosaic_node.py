@@ -4,7 +4,7 @@ Subscribes to topics.FRAME_IN (the working-resolution mono8 image), topics.FRAME
 orientation, status) and topics.HOMOGRAPHY (the tracking reference), matched by header stamp (each
 frame's own reference: the three topics arrive in any order). Only
 CONVERGED frames with a valid orientation enter, at most one per `frame_period` seconds of image time
-(the newest one then), into a fixed `width` x `width`/2 spherical canvas (mosaic/live.py: memory is the
+(the first after it; the others are dropped by their stamp, never deserialised), into a fixed `width` x `width`/2 spherical canvas (mosaic/live.py: memory is the
 canvas, about width^2 bytes; each frame touches its own footprint only). The orientations are relative
 to the calibration's reference, so a new tracking reference starts a new mosaic. Every
 `publish_period` seconds, when frames entered since the last one, the canvas goes out as a
@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage
 
 from ptz_selfcal import topics
@@ -34,6 +35,7 @@ from ptz_selfcal.nodes.conversions import FrameError, declare_params, mono8_from
 from ptz_selfcal.nodes.params import config_kwargs, params_from
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal.settings import setting
+from ptz_selfcal.tools.bagio import header_stamp_ns
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, IngestedFrame
 
 # Messages of each input kept while their partners are on the way (they come on three topics).
@@ -91,28 +93,28 @@ def frame_view(fc: Any, width: int, height: int) -> FrameView | None:
 
 class MosaicNode(Node):
     def __init__(self, **kwargs: Any) -> None:
-        super().__init__("mosaic", **kwargs)
+        super().__init__("mosaic", **{"namespace": topics.NAMESPACE, **kwargs})
         p = declare_params(self, PARAMS)
         self._config = MosaicNodeConfig(**config_kwargs(MosaicNodeConfig, p))
         self._mosaic = LiveMosaic(self._config.width)
         self._counts: Counter[str] = Counter()
         self._warnings = CountedWarnings(self, self._counts)
-        self._frames: OrderedDict[int, IngestedFrame] = OrderedDict()
-        self._calibrations: OrderedDict[int, FrameCalibration] = OrderedDict()
-        self._references: OrderedDict[int, str] = OrderedDict()
+        # serialised messages by header stamp: only the frames that enter are ever deserialised
+        self._frames: OrderedDict[int, bytes] = OrderedDict()
+        self._calibrations: OrderedDict[int, bytes] = OrderedDict()
+        self._references: OrderedDict[int, bytes] = OrderedDict()
         self._reference: str | None = None  # the mosaic's
         self._last_added_ns: int | None = None
         self._header: Any = None
         self._dirty = False
         self._cpu = 0.0  # seconds in this node's callbacks
         self._pub = self.create_publisher(CompressedImage, topics.MOSAIC, reliable_qos(1))
-        self.create_subscription(IngestedFrame, topics.FRAME_IN, self._on_frame, reliable_qos(PENDING))
-        self.create_subscription(
-            FrameCalibration, topics.FRAME_CALIBRATION, self._on_calibration, reliable_qos(PENDING)
-        )
-        self.create_subscription(
-            HomographyStamped, topics.HOMOGRAPHY, self._on_homography, reliable_qos(4 * PENDING)
-        )
+        for msg_type, topic, store in (
+            (IngestedFrame, topics.FRAME_IN, self._frames),
+            (FrameCalibration, topics.FRAME_CALIBRATION, self._calibrations),
+            (HomographyStamped, topics.HOMOGRAPHY, self._references),
+        ):
+            self.create_subscription(msg_type, topic, self._receiver(store), reliable_qos(PENDING), raw=True)
         self.create_timer(self._config.publish_period, self._publish)
         p = self._mosaic.projection
         self.get_logger().info(
@@ -126,31 +128,19 @@ class MosaicNode(Node):
         return self._counts
 
     # ----------------------------------------------------------------------------------------------
-    def _on_homography(self, msg: HomographyStamped) -> None:
-        ref = msg.reference_stamp
-        reference = f"{msg.reference_frame_id}@{ref.sec}.{ref.nanosec:09d}"
-        stamp = _stamp_ns(msg.header.stamp)
-        _put(self._references, stamp, reference)
-        self._match(stamp)
+    def _receiver(self, store: OrderedDict[int, bytes]) -> Any:
+        """A raw subscription's callback: most frames come too soon after the last one that entered,
+        and are dropped by their header stamp alone (the CDR's first field), never deserialised."""
 
-    def _on_frame(self, msg: IngestedFrame) -> None:
-        start = time.thread_time()
-        stamp = _stamp_ns(msg.header.stamp)
-        if self._wanted(stamp):
-            _put(self._frames, stamp, msg)
-            self._match(stamp)
-        self._cpu += time.thread_time() - start
+        def receive(raw: bytes) -> None:
+            start = time.thread_time()
+            stamp = header_stamp_ns(raw)
+            if stamp is not None and self._wanted(stamp):
+                _put(store, stamp, raw)
+                self._match(stamp)
+            self._cpu += time.thread_time() - start
 
-    def _on_calibration(self, msg: FrameCalibration) -> None:
-        start = time.thread_time()
-        self._counts["calibrations_in"] += 1
-        stamp = _stamp_ns(msg.header.stamp)
-        if msg.status != FrameCalibration.CONVERGED:
-            self._counts["not_converged"] += 1
-        elif self._wanted(stamp):
-            _put(self._calibrations, stamp, msg)
-            self._match(stamp)
-        self._cpu += time.thread_time() - start
+        return receive
 
     def _wanted(self, stamp: int) -> bool:
         """Whether a frame of this stamp may enter now (frame_period of image time since the last)."""
@@ -160,13 +150,17 @@ class MosaicNode(Node):
     def _match(self, stamp: int) -> None:
         """A frame enters once its image, its calibration and its homography (which names the
         reference the orientation is relative to) are all here; they come on three topics, in any order."""
-        frame, fc = self._frames.get(stamp), self._calibrations.get(stamp)
-        reference = self._references.get(stamp)
-        if frame is None or fc is None or reference is None:
+        raw = [store.get(stamp) for store in (self._frames, self._calibrations, self._references)]
+        if any(r is None for r in raw):
             return
-        del self._frames[stamp], self._calibrations[stamp]
-        if not self._wanted(stamp):
+        for store in (self._frames, self._calibrations, self._references):
+            del store[stamp]
+        fc = deserialize_message(raw[1], FrameCalibration)
+        self._counts["calibrations_taken"] += 1
+        if fc.status != FrameCalibration.CONVERGED:
+            self._counts["not_converged"] += 1
             return
+        frame = deserialize_message(raw[0], IngestedFrame)
         view = frame_view(fc, int(frame.full_width), int(frame.full_height))
         if view is None:
             self._counts["invalid_calibration"] += 1
@@ -176,6 +170,8 @@ class MosaicNode(Node):
         except FrameError as exc:
             self._warnings.warn_once("bad_image", str(exc))
             return
+        h = deserialize_message(raw[2], HomographyStamped)
+        reference = f"{h.reference_frame_id}@{h.reference_stamp.sec}.{h.reference_stamp.nanosec:09d}"
         if reference != self._reference:
             if self._reference is not None:
                 self.get_logger().info(f"new tracking reference {reference}: a new mosaic")
@@ -202,8 +198,8 @@ class MosaicNode(Node):
     def close(self) -> None:
         c = self._counts
         self.get_logger().info(
-            f"{c['frames_added']} frames added ({c['calibrations_in']} calibrations in, {c['not_converged']} "
-            f"not converged), {c['mosaics_out']} mosaics published, {c['new_mosaics']} new references; "
+            f"{c['frames_added']} frames added ({c['calibrations_taken']} calibrations taken, "
+            f"{c['not_converged']} not converged), {c['mosaics_out']} mosaics published, {c['new_mosaics']} new references; "
             f"{self._cpu:.2f} s CPU in callbacks"
         )
 

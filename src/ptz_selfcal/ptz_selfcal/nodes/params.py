@@ -58,6 +58,16 @@ class CalibratorNodeConfig:
         "FrameCalibration still carries the prior)",
         choices=("prior", "uncalibrated"),
     )
+    reference_frame: str = setting(
+        "",
+        "frame_id of the calibration's reference (the tracking reference keyframe's camera) in the "
+        "orientation transform ('': <camera_name>_selfcal_reference)",
+    )
+    child_frame: str = setting(
+        "",
+        "child_frame_id of the orientation transform, a frame of this node's own, never one of the "
+        "driver's ('': <camera_name>_selfcal_optical)",
+    )
     inline_solves: bool = setting(
         False,
         "solve in the frame callback before the next frame instead of in the worker (each solve completes "

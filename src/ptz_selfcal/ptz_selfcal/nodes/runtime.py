@@ -33,15 +33,53 @@ def qos_overrides() -> QoSOverridingOptions:
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "node") -> int:
     """Create the node, spin until Ctrl-C/SIGTERM or rclpy shutdown, then tear down cleanly.
 
-    A configuration error (absurd parameter) is one line on stderr and exit status 2."""
+    A configuration error (absurd parameter) is one line on stderr, an ERROR status on /diagnostics under
+    the node's name (what a diagnostics monitor shows of a node that is gone) and exit status 2."""
     try:
-        return _spin_node(factory, args)
+        return _spin_node(factory, args, name)
     except ConfigError as exc:
         print(f"{name}: configuration error: {exc}", file=sys.stderr)
         return 2
 
 
-def _spin_node(factory: Callable[[], Node], args: Sequence[str] | None) -> int:
+CONFIG_ERROR_REPORT_WAIT = 3.0  # s a node with a configuration error waits for a diagnostics subscriber
+
+
+def report_config_error(name: str, message: str, wait: float = CONFIG_ERROR_REPORT_WAIT) -> None:
+    """An ERROR DiagnosticStatus for node `name` (with the command line's remaps, in the camera's
+    namespace unless remapped), sent to the subscribers that match within `wait` seconds."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from ptz_selfcal import topics
+
+    node = rclpy.create_node(name, namespace=topics.NAMESPACE)
+    try:
+        try:
+            hardware_id = str(node.declare_parameter("camera_name", "ptz").value)
+        except Exception:  # the configuration error may be this parameter's own
+            hardware_id = ""
+        pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
+        deadline = time.monotonic() + wait
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if pub.get_subscription_count() == 0:
+            return
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.ERROR,
+            name=node.get_fully_qualified_name(),
+            hardware_id=hardware_id,
+            message=f"configuration error: {message}",
+        )
+        for _ in range(3):  # reliable, but a reader that has not matched this writer yet misses the first
+            array = DiagnosticArray(status=[status])
+            array.header.stamp = node.get_clock().now().to_msg()
+            pub.publish(array)
+            time.sleep(0.2)
+    finally:
+        node.destroy_node()
+
+
+def _spin_node(factory: Callable[[], Node], args: Sequence[str] | None, name: str) -> int:
     # rclpy's default handlers turn SIGINT and SIGTERM into a context shutdown, which ends spin().
     rclpy.init(args=args)
     node = None
@@ -52,6 +90,10 @@ def _spin_node(factory: Callable[[], Node], args: Sequence[str] | None) -> int:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ConfigError as exc:
+        if rclpy.ok():
+            report_config_error(name, str(exc))
+        raise
     finally:
         if node is not None:
             close = getattr(node, "close", None)

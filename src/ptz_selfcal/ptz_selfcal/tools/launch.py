@@ -16,9 +16,13 @@ participant lease of --dds-lease seconds (default 2) through a default XML profi
 environment already names a Fast DDS profile file.
 
 The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
-/ns/name, /**/name, /**) to {ros__parameters: {...}}. Plain node-name keys are rewritten to /**/name in a
-temporary copy so that they apply under any namespace. A homography_tracker without a state_dir of its
-own gets the calibrator's (same key prefix), so that a restarted tracker reloads its keyframe map.
+/ns/name, /**/name, /**) to {ros__parameters: {...}}. What each node gets (name, namespace, parameters,
+remappings) is decided by one pure function, plan_suite(), which the ROS launch file
+(launch/ptz_selfcal.launch.py) calls too, so the two start the same graph: a plain node-name key applies
+in any namespace, a homography_tracker without a state_dir of its own gets the calibrator's (a restarted
+tracker reloads its keyframe map), and camera_name (the diagnostics' hardware_id) comes from the
+argument, else the file, else the namespace's last component (/cam1: cam1). The nodes sit in the
+camera's namespace, /ptz unless --namespace names another (topics.py).
 """
 
 from __future__ import annotations
@@ -134,47 +138,100 @@ def _check_values(path: Path, prefix: str, params: dict[str, Any]) -> None:
             raise CliError(f"{path}: {where} has no value")
 
 
-def namespaced_params_file(data: dict[str, Any], directory: str) -> Path:
-    """A copy of the parameters whose plain node-name keys match the node in any namespace."""
+@dataclass(frozen=True)
+class NodeLaunch:
+    """One node of the suite as both launchers start it: executable/module, fully qualified place,
+    parameters (flat dotted names) and remappings."""
+
+    name: str  # node name, also its executable in lib/ptz_selfcal
+    module: str  # python -m module
+    namespace: str  # absolute
+    parameters: dict[str, Any]
+    remappings: tuple[tuple[str, str], ...]
+
+    @property
+    def fully_qualified_name(self) -> str:
+        return f"{self.namespace.rstrip('/')}/{self.name}"
+
+
+def _key_matches(key: str, fqn: str) -> bool:
+    """Whether a parameter-file key (rcl's: a node name, /ns/name, with * for one and ** for any number
+    of name components) applies to the node of fully qualified name fqn."""
+    import re
+
+    key = key if key.startswith("/") else f"/**/{key}"
+    pattern = ""
+    for part in key.strip("/").split("/"):
+        if part == "**":
+            pattern += "(/[^/]+)*"
+        else:
+            pattern += "/" + re.escape(part).replace(r"\*", "[^/]+")
+    return re.fullmatch(pattern, fqn) is not None
+
+
+def _flat(params: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, value in params.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{name}."))
+        else:
+            out[f"{prefix}{name}"] = value
+    return out
+
+
+def plan_suite(
+    data: dict[str, Any],
+    namespace: str | None = None,
+    remaps: Sequence[str] = (),
+    camera_name: str | None = None,
+    nodes: Sequence[str] = tuple(NODE_MODULES),
+    modules: dict[str, str] | None = None,
+    name_from_namespace: bool = True,
+) -> list[NodeLaunch]:
+    """The node suite to start, pure: `data` is a checked parameter file (load_params_file), namespace and
+    remaps (FROM:=TO) as given by the user (checked here). Each node gets the sections of the file that
+    match it, in file order, so later sections win as in rcl. name_from_namespace False: a private
+    namespace (run's) does not name the camera."""
+    from ptz_selfcal import topics
+
+    ns = check_namespace(namespace) or topics.NAMESPACE
+    pairs = tuple(tuple(r.split(":=", 1)) for r in check_remaps(remaps))
+    modules = {**NODE_MODULES, **(modules or {})}
+    params = {
+        name: {
+            k: v
+            for key, section in data.items()
+            if _key_matches(str(key), f"{ns}/{name}")
+            for k, v in _flat(section.get("ros__parameters") or {}).items()
+        }
+        for name in NODE_MODULES
+    }
+    calibrator = params["calibrator"]
+    tracker = params["homography_tracker"]
+    # Not with estimate_distortion (unless a fixed lens): the lens correction's state is not persisted,
+    # so a tracker that kept its reference would leave the restored calibration without corrected
+    # homographies; a new map re-initialises both (zoom model meanwhile). A fixed lens saves its one
+    # coefficient with the calibration and never corrects homographies: its tracker keeps the map.
+    lens_hook = calibrator.get("estimate_distortion") is True and calibrator.get("focal_model") != "constant"
+    if calibrator.get("state_dir") and not lens_hook and "state_dir" not in tracker:
+        tracker["state_dir"] = calibrator["state_dir"]
+    named = camera_name or next((p["camera_name"] for p in params.values() if p.get("camera_name")), None)
+    if not named and namespace and name_from_namespace:
+        named = ns.rsplit("/", 1)[-1]
+    if named:
+        for p in params.values():
+            p["camera_name"] = named
+    return [NodeLaunch(name, modules[name], ns, params[name], pairs) for name in nodes]
+
+
+def plan_params_file(plan: Sequence[NodeLaunch], directory: str) -> Path:
+    """The plan's parameters as one parameter file, a section per node under its fully qualified name."""
     import yaml
 
-    out = {}
-    for key, section in data.items():
-        key = str(key)
-        out[key if key.startswith("/") else f"/**/{key}"] = section
-    out = share_state_dir(out)
+    out = {n.fully_qualified_name: {"ros__parameters": dict(n.parameters)} for n in plan}
     path = Path(directory) / "params.yaml"
     path.write_text(yaml.safe_dump(out, sort_keys=False))
     return path
-
-
-def share_state_dir(data: dict[str, Any]) -> dict[str, Any]:
-    """A copy of the parameters in which each homography_tracker section (key with the same prefix as a
-    calibrator's) without its own state_dir gets the calibrator's non-empty one (unless the calibrator
-    estimates distortion): the tracker saves its keyframe map beside the calibration state, and a
-    restarted tracker keeps the calibration's reference."""
-    out = dict(data)
-    for key, section in data.items():
-        key = str(key)
-        prefix, _, name = key.rpartition("/")
-        params = section.get("ros__parameters") or {}
-        state_dir = params.get("state_dir") if name == "calibrator" else None
-        # Not with estimate_distortion: the lens correction's state is not persisted, so a tracker that
-        # keeps its reference would leave the restored calibration without corrected homographies
-        # (K from the zoom model until a reset); a new map re-initialises both (zoom model meanwhile).
-        # A fixed lens (focal_model constant) saves its one coefficient with the calibration and never
-        # corrects homographies: its tracker keeps the map.
-        lens_hook = params.get("estimate_distortion") is True and params.get("focal_model") != "constant"
-        if not state_dir or lens_hook:
-            continue
-        tracker_key = (
-            f"{prefix}/homography_tracker" if prefix or key.startswith("/") else "homography_tracker"
-        )
-        tracker = dict(out.get(tracker_key) or {"ros__parameters": {}})
-        params = dict(tracker.get("ros__parameters") or {})
-        params.setdefault("state_dir", state_dir)
-        out[tracker_key] = {**tracker, "ros__parameters": params}
-    return out
 
 
 def check_remaps(remaps: Sequence[str]) -> list[str]:
@@ -434,7 +491,15 @@ class Supervisor:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", metavar="FILE", help="parameter YAML (default: config/ptz_selfcal.yaml)")
-    parser.add_argument("--namespace", metavar="NS", help="namespace of the suite, e.g. /cam1")
+    parser.add_argument(
+        "--namespace", metavar="NS", help="the camera's namespace, where its image_raw is (default /ptz)"
+    )
+    parser.add_argument(
+        "--camera-name",
+        metavar="NAME",
+        help="camera_name of every node, the diagnostics' hardware_id (default: the parameter file's, "
+        "else the namespace's last component)",
+    )
     parser.add_argument(
         "--remap", nargs="+", default=[], metavar="FROM:=TO", help="topic remappings given to every node"
     )
@@ -492,11 +557,13 @@ def lease_environment(lease: float, directory: str, environ: dict[str, str] | No
 
 def prepare(
     params: str | None, namespace: str | None, remaps: Sequence[str], tmpdir: str
-) -> tuple[Path, str | None, list[str]]:
-    """Validate the command-line inputs; returns the params file to pass to the nodes."""
+) -> tuple[Path, str, list[str]]:
+    """Validate the command-line inputs of a suite in a namespace of the caller's (run, benchmarks):
+    the params file to pass to the nodes (plan_suite's), the namespace and the remaps."""
     source = Path(params) if params else default_params_file()
     data = load_params_file(source, list(NODE_MODULES))
-    return namespaced_params_file(data, tmpdir), check_namespace(namespace), check_remaps(remaps)
+    plan = plan_suite(data, namespace, remaps, name_from_namespace=False)
+    return plan_params_file(plan, tmpdir), plan[0].namespace, check_remaps(remaps)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -507,7 +574,6 @@ def run(args: argparse.Namespace) -> int:
     if not (args.dds_lease == 0 or 0.5 <= args.dds_lease <= 3600):
         raise CliError(f"--dds-lease must be 0 or in [0.5, 3600] s, got {args.dds_lease}")
     with tempfile.TemporaryDirectory(prefix="ptz_selfcal_launch_") as tmp:
-        params_file, namespace, remaps = prepare(args.params, args.namespace, args.remap, tmp)
         modules = dict(NODE_MODULES)
         for item in args.node_module:
             name, sep, module = item.partition("=")
@@ -516,9 +582,16 @@ def run(args: argparse.Namespace) -> int:
                     f"--node-module wants NAME=MODULE with NAME in {', '.join(modules)}, got {item!r}"
                 )
             modules[name] = module
-        specs = [NodeSpec(name, modules[name]) for name in args.nodes]
+        source = Path(args.params) if args.params else default_params_file()
+        data = load_params_file(source, list(NODE_MODULES))
+        plan = plan_suite(data, args.namespace, args.remap, args.camera_name, args.nodes, modules)
+        specs = [NodeSpec(n.name, n.module) for n in plan]
+        remaps = [f"{src}:={dst}" for src, dst in plan[0].remappings] if plan else []
+        namespace = plan[0].namespace if plan else None
         env = lease_environment(args.dds_lease, tmp)
-        supervisor = Supervisor(specs, params_file, namespace, remaps, nice=args.nice, env=env)
+        supervisor = Supervisor(
+            specs, plan_params_file(plan, tmp), namespace, remaps, nice=args.nice, env=env
+        )
         if env:
             supervisor.log(f"DDS participant lease {args.dds_lease:g} s ({env[PROFILE_VARIABLES[0]]})")
         stop = threading.Event()

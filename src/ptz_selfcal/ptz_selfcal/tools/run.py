@@ -142,7 +142,7 @@ def _pick_topic(
     only non-ground-truth topic of a fitting type; None when there is none."""
     found = {t.name: t for t in reader.topics()}
     if wanted:
-        name = topics.bag_topic(wanted)
+        name = wanted if wanted.startswith("/") else "/" + wanted  # a bag's names are absolute
         if name not in found:
             raise CliError(f"{reader.path}: no topic {name} (topics: {', '.join(found) or 'none'})")
         if found[name].msgtype not in types:
@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
         ingest_args = {
             "sensor_reliability": "reliable",
             "queue_policy": "lossless",
-            "input": input_kind,
+            "image_transport": input_kind,
             "wait_for_subscribers": 2 if args.record_frames else 1,
             "encoder_wait": 1.0,
         }
@@ -227,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
             # whether the next sample (sent before the image, on another topic) was delivered first; and
             # a sample DDS re-sends late on a loaded machine must not expire the frame's wait.
             ingest_args["encoder_max_hold"] = 0.0
+            ingest_args["encoder_extrapolate_slow"] = "false"
             ingest_args["encoder_wait"] = max(1.0, 0.5 * args.timeout)
         tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
         # Lock-step results otherwise depend on when the worker's solves land relative to the frames.

@@ -1,16 +1,16 @@
 """`ptz-selfcal synth PANORAMA OUT_BAG`: a PTZ camera rendered from an equirectangular panorama.
 
 Writes a ROS 2 bag (mcap by default) with the topics of DESIGN.md section 3 and ptz_selfcal/topics.py
-(NS = --namespace, default none: /ptz/...):
-  NS/ptz/image_raw/compressed    sensor_msgs/CompressedImage (--format jpeg|png), or
-  NS/ptz/image_raw               sensor_msgs/Image (--format mono8|bgr8)
-  NS/ptz/joint_states            sensor_msgs/JointState: encoders pan, tilt (rad), zoom (counts), own rate,
+(NS = --namespace, default /ptz):
+  NS/image_raw/compressed        sensor_msgs/CompressedImage (--format jpeg|png), or
+  NS/image_raw                   sensor_msgs/Image (--format mono8|bgr8)
+  NS/joint_states                sensor_msgs/JointState: encoders pan, tilt (rad), zoom (counts), own rate,
                                  lag and noise (sim/render.py EncoderModel: stamp t = state at t - lag,
                                  so an ingest's time_offset is -lag)
-  NS/ptz/ground_truth/camera_info  sensor_msgs/CameraInfo per image, same stamp: the true K, P = [K|0],
+  NS/ground_truth/camera_info  sensor_msgs/CameraInfo per image, same stamp: the true K, P = [K|0],
                                  R = I; distortion_model "plumb_bob" with D = 0 when the lens has no
                                  distortion, else "division" with D = [lam] (exact: camera/distortion.py)
-  NS/ptz/ground_truth/joint_states sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
+  NS/ground_truth/joint_states sensor_msgs/JointState per image, same stamp: true pan, tilt, zoom counts
 and OUT_BAG/synth_params.yaml (every parameter, for evaluation and reproduction). The bag is written to
 a temporary directory beside OUT_BAG and renamed at the end: nothing is left half-written. The same
 arguments (and bag name: mcap stores it) give the same bytes, whatever --jobs.
@@ -154,7 +154,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--interpolation", choices=("linear", "cubic"), default="linear", help="panorama sampling")
     g = parser.add_argument_group("output")
     g.add_argument(
-        "--namespace", default="/", help="namespace of the camera's topics, e.g. /cam1 (default /)"
+        "--namespace",
+        default=topics.NAMESPACE,
+        help=f"namespace of the camera's topics, e.g. /cam1 (default {topics.NAMESPACE})",
     )
     g.add_argument(
         "--frame-id", default=topics.CAMERA_FRAME_ID, help=f"image frame_id ({topics.CAMERA_FRAME_ID})"
