@@ -21,6 +21,9 @@ from ptz_selfcal.mosaic.warp import Box, FrameView, footprint, footprint_box, wa
 WEIGHT_UNIT = 64.0
 WEIGHT_CAP = 255.0
 FORMATS = ("jpeg", "png")
+# A frame is warped in strips of this many mosaic rows: the warp's float arrays stay a few MB whatever
+# the canvas, where a whole footprint at 8192 columns would need tens.
+STRIP_ROWS = 128
 
 
 class LiveMosaic:
@@ -50,6 +53,12 @@ class LiveMosaic:
         box = footprint_box(footprint(view), self.projection)
         if box.empty:
             return None
+        for y0 in range(box.y0, box.y1, STRIP_ROWS):
+            self._blend(image, view, Box(box.x0, box.x1, y0, min(y0 + STRIP_ROWS, box.y1)))
+        self.frames += 1
+        return box
+
+    def _blend(self, image: np.ndarray, view: FrameView, box: Box) -> None:
         warped = warp_frame(image, view, self.projection, box)
         rows = slice(box.y0, box.y1)
         W = self.projection.width
@@ -65,8 +74,6 @@ class LiveMosaic:
             mean = (c * w + p * v) / np.maximum(total, np.float32(1e-6))
             c[seen] = np.rint(mean[seen]).astype(np.uint8)
             self.weight[rows, dst : dst + n][seen] = np.minimum(total[seen], WEIGHT_CAP).astype(np.uint8)
-        self.frames += 1
-        return box
 
     def encode(self, fmt: str = "jpeg", jpeg_quality: int = 85) -> bytes:
         """The canvas as JPEG (grey, black where nothing was seen) or PNG (BGRA, alpha 0 there)."""

@@ -1,15 +1,16 @@
 """mosaic node: the live panorama of what the camera has seen (paper section 8), beside the calibrator.
 
 Subscribes to topics.FRAME_IN (the working-resolution mono8 image), topics.FRAME_CALIBRATION (K, D,
-orientation, status) and topics.HOMOGRAPHY (the tracking reference), matched by header stamp (each
-frame's own reference: the three topics arrive in any order). Only
-CONVERGED frames with a valid orientation enter, at most one per `frame_period` seconds of image time
-(the first after it; the others are dropped by their stamp, never deserialised), into a fixed `width` x `width`/2 spherical canvas (mosaic/live.py: memory is the
-canvas, about width^2 bytes; each frame touches its own footprint only). The orientations are relative
-to the calibration's reference, so a new tracking reference starts a new mosaic. Every
-`publish_period` seconds, when frames entered since the last one, the canvas goes out as a
-sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG with alpha 0 where nothing was seen),
-its header the newest frame's. Off unless started (the suite's launch parameter). Run:
+orientation, status) and topics.HOMOGRAPHY (the tracking reference), raw, matched by header stamp
+(each frame's own reference: the three topics arrive in any order). Only CONVERGED frames with a
+valid orientation enter, at most one per `frame_period` seconds of image time (the first after it:
+the others are dropped by their stamp, never deserialised), into a fixed `width` x `width`/2
+spherical canvas (mosaic/live.py: memory is the canvas, about width^2 bytes; each frame touches its
+own footprint only). The orientations are relative to the calibration's reference, so a new tracking
+reference starts a new mosaic. Every `publish_period` seconds, when frames entered since the last
+one, the canvas goes out as a sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG with
+alpha 0 where nothing was seen), its header the newest frame's. Off unless started (the suite's
+launch parameter). Run:
     python -m ptz_selfcal.nodes.mosaic_node --ros-args -p width:=8192
 """
 
@@ -199,7 +200,8 @@ class MosaicNode(Node):
         c = self._counts
         self.get_logger().info(
             f"{c['frames_added']} frames added ({c['calibrations_taken']} calibrations taken, "
-            f"{c['not_converged']} not converged), {c['mosaics_out']} mosaics published, {c['new_mosaics']} new references; "
+            f"{c['not_converged']} not converged), {c['mosaics_out']} mosaics published, "
+            f"{c['new_mosaics']} new references; "
             f"{self._cpu:.2f} s CPU in callbacks"
         )
 
