@@ -134,9 +134,9 @@ FAMILIES: tuple[Family, ...] = (
     ),
     Family(
         "patrol",
-        "pan-dominant patrol: 120 frames 960x540 mono8 at 5 fps, pan +-50 deg, tilt +-1.5 deg, "
+        "pan-dominant patrol: 120 frames 960x540 mono8 at 5 fps, pan +-50 deg, tilt +-2.5 deg, "
         "2 s dwell at the turn, zoom 1.5x, hfov 60",
-        "--motion patrol --pan-amplitude 50 --tilt-amplitude 1.5 --tilt-cycles 1 --dwell 2 --zoom-max 1.5 "
+        "--motion patrol --pan-amplitude 50 --tilt-amplitude 2.5 --tilt-cycles 1 --dwell 2 --zoom-max 1.5 "
         "--hfov 60 --frames 120 --fps 5 --width 960 --height 540 --format mono8",
         SOFT_TUNE,
         SOFT_HELD,
@@ -421,7 +421,7 @@ def run_line(run: Run, row: dict[str, float], synth_s: float, eval_s: float) -> 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--seeds", type=int, default=6, help="seeds per family (default 6: 2 tune, 4 held out)"
+        "--seeds", type=int, default=10, help="seeds per family (default 10: 4 tune, 6 held out)"
     )
     parser.add_argument("--quick", action="store_true", help="one held-out seed per family (development)")
     parser.add_argument("--families", help="comma-separated family names (default: all)")
