@@ -32,6 +32,7 @@ from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
 from ptz_selfcal.online.status_policy import ModelFit, StatusEvidence, StatusPolicy, decide, honest_sigma
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult, ZoomTable
 from ptz_selfcal.persist.session_state import SavedState, load_zoom_model, state_to_dict
+from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
 from ptz_selfcal.status import CalibrationStatus
 from ptz_selfcal.zoom.model import ZoomModel, ZoomModelError
 
@@ -244,7 +245,22 @@ class KeyframeCalibration:
         rel = solve.sigma_f_ref / solve.K_ref[1, 1]
         adjusted = "+" in solve.method  # LM on eq. 22, then the bundle adjustment
         noise = self.solver.noise_estimate if adjusted else None
-        return honest_sigma(float(rel), noise, self.model_fit.tracker_noise)
+        spread = self._keyframe_spread(calibrator)
+        return honest_sigma(float(rel), noise, self.model_fit.tracker_noise, spread)
+
+    @staticmethod
+    def _keyframe_spread(calibrator: IncrementalCalibrator) -> float:
+        """The largest |f_k / f_k' - 1| over the keyframes: f_k the solve's, f_k' the reference K carried
+        to keyframe k by its homography (eq. 20)."""
+        K_ref, worst = calibrator.reference_K, 0.0
+        for kf in calibrator.keyframes:
+            if kf.K is None:
+                continue
+            with contextlib.suppress(*_SOLVE_ERRORS):
+                K_t = intrinsics_from_transferred_diac(kf.H, K_ref, calibrator.model, calibrator.image_size)
+                change = abs(float(kf.K[1, 1]) / float(K_t[1, 1]) - 1.0)
+                worst = max(worst, change) if math.isfinite(change) else worst
+        return worst
 
     def _misfit(self) -> float:
         """The lens model's residual noise as a transfer error per coordinate (px): with distortion

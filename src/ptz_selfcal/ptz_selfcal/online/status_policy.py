@@ -137,12 +137,17 @@ class StatusEvidence:
     lens_model_change: Callable[[], float] | None = None  # measured only when it can decide
 
 
-def honest_sigma(sigma_f: float, adjustment_noise: float | None, tracker_noise: float) -> float:
+def honest_sigma(
+    sigma_f: float, adjustment_noise: float | None, tracker_noise: float, keyframe_spread: float = 0.0
+) -> float:
     """The adjustment's relative 1-sigma of f rescaled from its own residual noise (per observation) to the
-    tracker's (per observation: a transfer error is two observations' noise, hence sqrt 2); never smaller."""
-    if adjustment_noise is None or not (adjustment_noise > 0.0 and math.isfinite(tracker_noise)):
-        return sigma_f
-    return sigma_f * max(1.0, tracker_noise / (math.sqrt(2.0) * adjustment_noise))
+    tracker's (per observation: a transfer error is two observations' noise, hence sqrt 2), never smaller;
+    combined with the keyframes' spread: how far the adjustment's per-keyframe f departs from the reference
+    K carried to the keyframe by its homography (eq. 20), which the frames inherit and the covariance of
+    a weakly linked chain of keyframes leaves out."""
+    if adjustment_noise is not None and adjustment_noise > 0.0 and math.isfinite(tracker_noise):
+        sigma_f *= max(1.0, tracker_noise / (math.sqrt(2.0) * adjustment_noise))
+    return math.hypot(sigma_f, keyframe_spread) if math.isfinite(keyframe_spread) else sigma_f
 
 
 def decide(policy: StatusPolicy, e: StatusEvidence) -> tuple[CalibrationStatus, str]:
