@@ -254,10 +254,10 @@ def run_figures(report: dict) -> dict[str, float]:
     fig = report["figures"]
     wp, cal = fig.get("well_posed_time_s"), fig.get("first_calibrated_time_s")
     interval = _finite(fig.get("frame_interval_s"))
-    if cal is None:
-        latency = math.inf  # never calibrated
-    elif wp is None:
+    if wp is None:
         latency = math.nan  # never well posed: nothing to be late for
+    elif cal is None:
+        latency = math.inf  # well posed, never calibrated
     else:
         latency = cal - wp
     run = fig.get("run_level") or {}
@@ -375,9 +375,7 @@ def family_block(fam: Family, results: dict[str, list[tuple[Run, dict[str, float
         lines.append(f"  [{label}] {len(done)} runs (seeds {seeds}; {', '.join(panos)})")
         table = judge([row for _, row in done])
         w = [max(len(t[i]) for t in table) for i in range(5)]
-        lines.append(
-            f"    {'figure':<{w[0]}}  {'target':<{w[1]}}  {'worst run':<{w[2]}}  {'median run':<{w[3]}}"
-        )
+        lines.append(f"    {'figure':<{w[0]}}  {'target':<{w[1]}}  {'worst run':<{w[2]}}  median run")
         for t in table:
             lines.append(
                 f"    {t[0]:<{w[0]}}  {t[1]:<{w[1]}}  {t[2]:<{w[2]}}  {t[3]:<{w[3]}}  {t[4]}".rstrip()
