@@ -175,3 +175,25 @@ def test_mosaic_of_an_input_bag_runs_the_nodes(bags: tuple[Path, Path], tmp_path
     truth = _truth_coverage(out_bag, Projection.spherical(1024), _tracked(out_bag))
     assert _iou(image[:, :, 3] > 0, truth) > 0.9
     assert math.isclose(image.shape[1] / image.shape[0], 2.0)
+
+
+def test_eval_mosaic_beside_its_source_panorama(bags: tuple[Path, Path], tmp_path: Path) -> None:
+    """eval's mosaic step: the mosaic in the panorama's frame (ground truth), next to the same region
+    of the panorama the bag was rendered from (found by its synth_params.yaml name and sha256)."""
+    in_bag, out_bag = bags
+    data = evaluate.read_output_bag(
+        out_bag, evaluate.BagData(image_stamps=evaluate.read_image_stamps(in_bag))
+    )
+    entry = mosaic_tool.eval_mosaic(data, out_bag, in_bag, tmp_path, max_width=1024)
+    assert entry["frame"] == "ground truth" and entry["frames_placed"] == len(_tracked(out_bag))
+    assert entry["source_panorama"] == "examplepano.jpg"
+    mosaic = cv2.imread(entry["file"], cv2.IMREAD_UNCHANGED)
+    beside = cv2.imread(entry["comparison_file"], cv2.IMREAD_COLOR)
+    assert mosaic.shape == (512, 1024, 4)
+    rows = np.nonzero((mosaic[:, :, 3] > 0).any(axis=1))[0]
+    assert beside.shape[0] == 2 * (rows[-1] + 1 - rows[0])  # the covered rows, then the same of the source
+    assert entry["photometric_median_abs_diff"] < 8.0
+    # a bag without ground truth or a panorama: the mosaic levelled by the encoders, no comparison
+    data.gt_joint_states.clear()
+    entry = mosaic_tool.eval_mosaic(data, out_bag, in_bag, tmp_path / "plain", max_width=512)
+    assert entry["frame"] == "encoders" and "comparison_file" not in entry

@@ -23,7 +23,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -385,3 +385,119 @@ def run(args: argparse.Namespace) -> int:
         extra = ["--deterministic"] if args.deterministic else []
         run_pipeline(in_bag, output_bag, args.params, args.quiet, extra)
         return _mosaic_from(output_bag, in_bag, args)
+
+
+# --------------------------------------------------------------------------------------------------
+# The mosaic in `ptz-selfcal eval`
+# --------------------------------------------------------------------------------------------------
+SYNTH_PARAMS = "synth_params.yaml"  # tools/synth.py writes it into the bag directory
+EVAL_MAX_WIDTH = 4096
+
+
+def repository_panoramas() -> Path:
+    """The repository's panoramas (bags/source), where a checkout has them."""
+    return Path(__file__).resolve().parents[4] / "bags" / "source"
+
+
+def source_panorama(in_bag: Path, search: Sequence[Path] = ()) -> Path | None:
+    """The panorama a synthetic bag was rendered from: named with its sha256 in the bag's
+    synth_params.yaml, looked for beside the bag, in `search` and in the repository's bags/source."""
+    import hashlib
+
+    import yaml
+
+    params = in_bag / SYNTH_PARAMS
+    if not params.is_file():
+        return None
+    info = (yaml.safe_load(params.read_text()) or {}).get("panorama") or {}
+    name, sha = info.get("file"), info.get("sha256")
+    if not name:
+        return None
+    for folder in (in_bag.parent, in_bag.parent.parent, *search, repository_panoramas()):
+        path = Path(folder) / str(name)
+        if path.is_file() and (not sha or hashlib.sha256(path.read_bytes()).hexdigest() == sha):
+            return path
+    return None
+
+
+def truth_alignment(data: BagData, frames: Frames) -> np.ndarray | None:
+    """The rotation that puts a synthetic bag's mosaic in its panorama's frame (ground-truth pan/tilt);
+    None without ground truth for at least 3 placed frames."""
+    R_true = np.full((len(frames.stamps), 3, 3), np.nan)
+    for k, stamp in enumerate(frames.stamps):
+        js = data.gt_joint_states.get(stamp)
+        if js is None or "pan" not in js.name or "tilt" not in js.name:
+            continue
+        names = list(js.name)
+        pan, tilt = js.position[names.index("pan")], js.position[names.index("tilt")]
+        R_true[k] = metrics.rotations_from_encoders([pan], [tilt])[0]
+    ok = np.isfinite(R_true).all(axis=(1, 2))
+    if ok.sum() < 3:
+        return None
+    return metrics.align_rotations(np.asarray(frames.R_reference), R_true, ok)
+
+
+def eval_mosaic(
+    data: BagData, output_bag: Path, image_bag: Path, out_dir: Path, max_width: int = EVAL_MAX_WIDTH
+) -> dict[str, Any]:
+    """`eval`'s mosaic: out_dir/mosaic.png (final calibration, levelled by the encoders or, for a
+    synthetic bag, in its panorama's frame by the ground truth) and, when the source panorama is found,
+    out_dir/mosaic_vs_source.png: the covered region over the same region of the panorama. The
+    report's entry (never raises for a bag it cannot place: the entry says why)."""
+    try:
+        frames = collect_final_frames(data, read_homographies(output_bag))
+        if not frames.views:
+            frames = collect_frames(data, calibrated_only=True)
+        if not frames.views:
+            return {"file": None, "note": "no frame to place"}
+        A = truth_alignment(data, frames)
+        frame = "ground truth" if A is not None else "encoders"
+        if A is None:
+            A = encoder_alignment(frames)
+            frame = "encoders" if A is not None else "calibration reference"
+        if A is not None:
+            frames = with_alignment(frames, A)
+        result = make_mosaic(image_bag, frames, SPHERICAL, max_width)
+    except (CliError, ValueError, np.linalg.LinAlgError) as exc:
+        return {"file": None, "note": f"no mosaic: {exc}"}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "mosaic.png"
+    cv2.imwrite(str(path), result.image)
+    covered = result.image[:, :, 3] > 0
+    entry: dict[str, Any] = {
+        "file": str(path),
+        "frames_placed": result.frames,
+        "skipped": dict(frames.skipped),
+        "size": [result.projection.width, result.projection.height],
+        "covered_pct": 100.0 * float(covered.mean()),
+        "frame": frame,
+    }
+    panorama = source_panorama(image_bag)
+    if panorama is not None and frame == "ground truth":
+        entry.update(_beside_source(result.image, panorama, out_dir / "mosaic_vs_source.png"))
+    return entry
+
+
+def _beside_source(mosaic: np.ndarray, panorama: Path, out: Path) -> dict[str, Any]:
+    """The mosaic's covered bounding box above the same region of the source panorama (at the mosaic's
+    resolution), and the median grey-level difference there after one global gain."""
+    source = cv2.imread(str(panorama), cv2.IMREAD_COLOR)
+    H, W = mosaic.shape[:2]
+    source = cv2.resize(source, (W, H), interpolation=cv2.INTER_AREA)
+    covered = mosaic[:, :, 3] > 0
+    rows = np.nonzero(covered.any(axis=1))[0]
+    y0, y1 = int(rows.min()), int(rows.max()) + 1
+    cols = np.nonzero(covered.any(axis=0))[0]
+    x0, x1 = int(cols.min()), int(cols.max()) + 1  # a crop across the wrap keeps the whole width
+    crop, truth = mosaic[y0:y1, x0:x1, :3], source[y0:y1, x0:x1]
+    mask = covered[y0:y1, x0:x1]
+    a = cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY)[mask].astype(float)
+    b = cv2.cvtColor(truth, cv2.COLOR_BGR2GRAY)[mask].astype(float)
+    gain = float((a * b).sum() / max((a * a).sum(), 1e-9))
+    shown = np.where(mask[:, :, None], crop, crop // 4)
+    cv2.imwrite(str(out), np.vstack([shown, truth]))
+    return {
+        "source_panorama": panorama.name,
+        "comparison_file": str(out),
+        "photometric_median_abs_diff": float(np.median(np.abs(gain * a - b))),
+    }
