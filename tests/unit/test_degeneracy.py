@@ -18,6 +18,9 @@ from ptz_selfcal.selfcal.degeneracy import (
     STATUS_OK,
     STATUS_SINGLE_AXIS,
     analyse_motion,
+    axis_disambiguation,
+    rotation_vectors,
+    second_axis_missing,
 )
 from ptz_selfcal.selfcal.lm import lm_selfcalibration
 
@@ -162,3 +165,31 @@ def test_configuration_b_constant_pp_at_moderate_noise_is_confident() -> None:
     # deviation of this ratio from 1 over other sets of ten seeds
     ratio = float(np.mean(sigmas)) / float(np.sqrt(np.mean(square_errors)))
     assert 1.0 / 2.7 < ratio < 2.7, ratio
+
+
+def test_axis_disambiguation_is_eq_30s_term_about_each_camera_axis() -> None:
+    """(|x y| / f) theta_X and (x^2 / f) theta_Y at the corner, largest over the frames."""
+    R = relative(np.array([ptz_rotation(0.0, 0.0), ptz_rotation(np.radians(2.0), np.radians(-1.0))]))
+    tilt, pan = axis_disambiguation(rotation_vectors(R), 800.0, SIZE)
+    theta = np.abs(rotation_vectors(R)[1])
+    assert np.isclose(tilt, theta[0] * CENTRE[0] * CENTRE[1] / 800.0)
+    assert np.isclose(pan, theta[1] * CENTRE[0] ** 2 / 800.0)
+    assert 4.0 < pan < 4.6 and 1.5 < tilt < 1.8
+
+
+def test_an_oblique_single_axis_is_not_degenerate_once_both_camera_axes_carry_it() -> None:
+    """A sweep's first frames pan and tilt in proportion (one oblique axis): not single_axis (square
+    pixels and zero skew exclude its family, 6.1) once both camera axes' terms reach the bound; a pan
+    alone stays single_axis, and a too small tilt is named as missing."""
+    n = 12
+    K = zoom(n, 1000.0, 1100.0)
+    oblique = relative(np.array([ptz_rotation(a, 0.4 * a) for a in np.radians(np.linspace(0, 8, n))]))
+    report = analyse_motion(oblique, K, SIZE)
+    assert not report.single_axis and report.status == STATUS_OK and min(report.axis_disambiguation_px) > 2
+    assert second_axis_missing(report, 2.0) == ""
+    pan = relative(np.array([ptz_rotation(a, 0.0) for a in np.radians(np.linspace(0, 8, n))]))
+    report = analyse_motion(pan, K, SIZE)
+    assert report.single_axis and report.status == STATUS_SINGLE_AXIS
+    shallow = relative(np.array([ptz_rotation(a, 0.05 * a) for a in np.radians(np.linspace(0, 8, n))]))
+    message = second_axis_missing(analyse_motion(shallow, K, SIZE), 2.0)
+    assert "tilt (x) axis" in message and "pan" not in message

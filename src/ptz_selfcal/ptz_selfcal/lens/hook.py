@@ -220,7 +220,7 @@ class SessionLensHook:
                 lens.set_keyframe(lens.reference_id, K[0, 0], self._centre(K))
             solved = set()
             for kf in list(calibrator.keyframes):
-                if kf.K is not None:
+                if kf.K is not None and lens.has_keyframe(int(kf.keyframe_id)):  # not an ordinary frame
                     lens.set_keyframe(int(kf.keyframe_id), kf.K[0, 0], self._centre(kf.K))
                     solved.add(int(kf.keyframe_id))
             # the other keyframes (held, dropped, not solved yet): the reference calibration (or the

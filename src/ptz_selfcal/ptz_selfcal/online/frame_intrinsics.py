@@ -205,7 +205,7 @@ def zoom_output(
 
 def initialising_reason(snap: CalibrationSnapshot | None, held: int, config: SessionConfig) -> str:
     """Why there is no calibration yet, for FrameCalibration users and logs."""
-    reason = ""
+    reason = "no frame solved yet: waiting for rotation about two axes (section 6)"
     if snap is not None:
         reason = f"{snap.keyframe_count - 1} of min_keyframes {config.min_keyframes} keyframes"
     if held:

@@ -62,6 +62,7 @@ class Keyframe:
     matches: object | None = None  # opaque data for a bundle-adjustment solver (not serialised)
     K: Array | None = None  # latest estimate
     tracked: bool = True  # a tracker keyframe (False: an ordinary frame chosen for its information)
+    anchor: tuple[int, Array] | None = None  # an ordinary frame: (its keyframe, H keyframe -> frame)
 
 
 SolverFn = Callable[
@@ -150,6 +151,7 @@ class IncrementalCalibrator:
         stamp: float | None = None,
         matches: object | None = None,
         tracked: bool = True,
+        anchor: tuple[int, Array] | None = None,
     ) -> CalibrationStatus:
         """Store a keyframe (tracked=False: an ordinary frame chosen for its information); solve the
         first time the motion is well posed (initialisation, section 6).
@@ -159,15 +161,21 @@ class IncrementalCalibrator:
         H = normalise_homography(H_ref_to_keyframe)
         self.keyframes = [kf for kf in self.keyframes if kf.keyframe_id != keyframe_id]
         stamp = None if stamp is None else float(stamp)
-        self.keyframes.append(Keyframe(keyframe_id, H, stamp, matches, tracked=bool(tracked)))
+        self.keyframes.append(Keyframe(keyframe_id, H, stamp, matches, tracked=bool(tracked), anchor=anchor))
         if len(self.keyframes) > self.max_keyframes:
             self._drop_redundant(len(self.keyframes) - self.max_keyframes)
         if self.calibrated:
             return self.state
         self.motion = self._motion_from_current_calibration()
         missing = ""
-        if single_axis_is_degenerate(self.model) and self.motion.status != STATUS_SINGLE_AXIS:
-            missing = second_axis_missing(self.motion, self.min_axis_disambiguation_px)
+        if single_axis_is_degenerate(self.model):
+            bound = self.min_axis_disambiguation_px
+            missing = second_axis_missing(self.motion, bound)
+            if (
+                self.motion.status == STATUS_SINGLE_AXIS
+                and max(self.motion.axis_disambiguation_px) >= 4 * bound
+            ):
+                missing = ""  # a long motion about one axis alone: degenerate (6.1), not merely short
         if (
             self.motion.status == STATUS_INSUFFICIENT_ROTATION
             or missing
@@ -248,6 +256,7 @@ class IncrementalCalibrator:
                     "stamp": kf.stamp,
                     "K": None if kf.K is None else kf.K.tolist(),
                     "tracked": kf.tracked,
+                    "anchor": None if kf.anchor is None else [int(kf.anchor[0]), kf.anchor[1].tolist()],
                 }
                 for kf in self.keyframes
             ],
@@ -285,6 +294,9 @@ class IncrementalCalibrator:
                 None,
                 None if kf["K"] is None else np.array(kf["K"], dtype=float),
                 bool(kf.get("tracked", True)),
+                None
+                if kf.get("anchor") is None
+                else (int(kf["anchor"][0]), np.array(kf["anchor"][1], dtype=float)),
             )
             for kf in data["keyframes"]
         ]

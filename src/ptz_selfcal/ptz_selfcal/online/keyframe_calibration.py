@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.camera.geometry import intrinsic_matrix, rotation_from_homography
+from ptz_selfcal.camera.geometry import intrinsic_matrix, normalise_homography, rotation_from_homography
 from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameOutput
@@ -115,7 +115,7 @@ class KeyframeCalibration:
             was_calibrated = calibrator.calibrated
             before = calibrator.last_solve
             try:
-                calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp, tracked=kf.tracked)
+                calibrator.add_keyframe(kf.keyframe_id, kf.H, kf.stamp, tracked=kf.tracked, anchor=kf.anchor)
             except _SOLVE_ERRORS as exc:
                 self.counters["calibrator_errors"] += 1
                 self._warn(f"keyframe {kf.keyframe_id} rejected: {exc}")
@@ -406,6 +406,8 @@ class KeyframeCalibration:
         if self.calibrator is not None:
             for kf in self.calibrator.keyframes:
                 H = homographies.get(int(kf.keyframe_id))
+                if H is None and kf.anchor is not None and kf.anchor[0] in homographies:
+                    H = normalise_homography(kf.anchor[1] @ homographies[kf.anchor[0]])  # an ordinary frame
                 if H is not None:
                     kf.H = H
         return self.result()

@@ -237,9 +237,16 @@ class CalibratorSession:
         if calibrator is None:
             return
         frame_id = self._selector.propose(H, calibrator)
-        if frame_id is not None:
-            stamp, zoom = float(frame.stamp), float(frame.zoom)
-            self._pending.append(PendingKeyframe(frame_id, H, stamp, zoom, self._zoom_rate, tracked=False))
+        if frame_id is None:
+            return
+        kid = int(frame.keyframe_id)
+        solved = self._snapshot.keyframes.get(kid) if self._snapshot is not None else None
+        H_key = solved[0] if solved is not None else self._links.homography.get(kid)
+        anchor = None if H_key is None else (kid, H @ np.linalg.inv(H_key))
+        stamp, zoom = float(frame.stamp), float(frame.zoom)
+        self._pending.append(
+            PendingKeyframe(frame_id, H, stamp, zoom, self._zoom_rate, tracked=False, anchor=anchor)
+        )
 
     def _set_calibrator(self) -> IncrementalCalibrator | None:
         """The calibration the set's frames are compared under: the latest, else the prior."""
@@ -498,6 +505,11 @@ class CalibratorSession:
     def solver(self) -> KeyframeBundleSolver:
         """The solving half's keyframe solver (the lens correction hands it the lens model)."""
         return self.calibration.solver
+
+    @property
+    def selector(self) -> CalibrationFrameSelector:
+        """The frame path's choice of ordinary frames for the solve (online/selection.py)."""
+        return self._selector
 
     @property
     def invalid_homographies(self) -> int:

@@ -34,6 +34,9 @@ class PendingKeyframe:
     zoom: float  # zoom encoder at the keyframe (NaN when invalid)
     zoom_rate: float  # zoom encoder counts / s at the keyframe: the zoom model learns the encoder's lag
     tracked: bool = True  # a tracker keyframe; False: an ordinary frame chosen for its information
+    # an ordinary frame: (its keyframe, H keyframe -> frame), so that its homography follows the
+    # keyframe's when the lens correction re-corrects the keyframes
+    anchor: tuple[int, Array] | None = None
 
 
 @dataclass(frozen=True)
