@@ -118,10 +118,10 @@ FAMILIES: tuple[Family, ...] = (
     ),
     Family(
         "hd30",
-        "1080p at 30 fps, low light (noise 6, gain +-20 %), mild barrel 3 %: 150 frames jpeg, "
+        "1080p at 30 fps, low light (synth --low-light, JPEG quality 60), mild barrel 3 %: 150 frames, "
         "sweep +-20/+-5 deg, zoom 2x",
-        "--width 1920 --height 1080 --frames 150 --fps 30 --distortion 0.03 --image-noise 6 "
-        "--brightness-drift 0.2 --pan-amplitude 20 --tilt-amplitude 5 --zoom-max 2",
+        "--width 1920 --height 1080 --frames 150 --fps 30 --distortion 0.03 --low-light --jpeg-quality 60 "
+        "--pan-amplitude 20 --tilt-amplitude 5 --zoom-max 2",
         SHARP,
         SHARP,
     ),
