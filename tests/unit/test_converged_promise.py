@@ -1,0 +1,121 @@
+"""CONVERGED is a promise (DESIGN.md section 3): within every run >= 95 % of the CONVERGED frames have
+|f - f_true| <= 3 sigma_f and none is more than 1 % off; a lens model that does not fit is reported as
+MODEL_MISMATCH, never CONVERGED and never DEGENERATE_MOTION. Sessions over several motions and seeds
+(the status policy, online/status_policy.py, was developed on seeds 0 and 1; 2 and 5 are held out)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_calibration_state import (
+    HEIGHT,
+    PP,
+    WIDTH,
+    encoded_sweep,
+    feed,
+    long_focal_sweep,
+)
+
+from ptz_selfcal.camera.distortion import (
+    division_distort,
+    division_lambda_for_corner_shift,
+    division_undistort,
+)
+from ptz_selfcal.camera.geometry import apply_homography
+from ptz_selfcal.online import session as cs
+from ptz_selfcal.status import CalibrationStatus as S
+
+MOTIONS = {
+    # name: (sweep, nominal field of view of the prior, whether CONVERGED must be reached)
+    "sweep": (lambda: encoded_sweep(120), 50.0, True),
+    "small_rotations": (lambda: encoded_sweep(120, pan_deg=15.0, tilt_deg=5.0), 50.0, True),
+    "wide_pan_few_frames": (lambda: encoded_sweep(90, pan_deg=40.0, tilt_deg=10.0), 50.0, True),
+    # the near-ambiguity of section 6.2: sigma_f stays near 0.4 %, CALIBRATING is the honest status
+    "long_focal": (lambda: long_focal_sweep(160), 30.0, False),
+}
+
+
+def session_config(**kwargs) -> cs.SessionConfig:
+    return cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0, **kwargs)
+
+
+def converged_honesty(outs: list, K_true) -> tuple[int, float, float]:
+    """(CONVERGED frames, share of them within 3 sigma_f, share of them more than 1 % off)."""
+    rows = [
+        (abs(o.K[1, 1] - K_true[j][1, 1]) / K_true[j][1, 1], o.sigma_f / o.K[1, 1])
+        for j, o in enumerate(outs)
+        if o.status == S.CONVERGED
+    ]
+    if not rows:
+        return 0, 1.0, 0.0
+    err, sigma = np.array(rows).T
+    return len(rows), float(np.mean(err <= 3.0 * sigma)), float(np.mean(err > 0.01))
+
+
+@pytest.mark.parametrize("seed", [0, 2, 5])
+@pytest.mark.parametrize("motion", sorted(MOTIONS))
+def test_converged_frames_are_within_three_sigma_and_one_percent(motion: str, seed: int) -> None:
+    make, hfov, must_converge = MOTIONS[motion]
+    K, H, zoom = make()
+    outs = feed(cs.CalibratorSession(session_config(nominal_hfov_deg=hfov)), H, zoom, seed=seed)
+    count, covered, off = converged_honesty(outs, K)
+    assert off == 0.0, (motion, seed, count, off)
+    assert covered >= 0.95, (motion, seed, count, covered)
+    if must_converge:
+        assert count >= 0.25 * len(outs), (motion, seed, count)
+    else:
+        assert outs[-1].status == S.CALIBRATING and "1-sigma of f" in outs[-1].message
+
+
+def distorted_zoom_sweep(n: int = 120, corner_shift: float = 0.12):
+    """encoded_sweep's zooming lens with barrel distortion (division model about the principal point,
+    corner shift `corner_shift` of the half-diagonal at f = 1000 px, shrinking as 1/f)."""
+    K, H, zoom = encoded_sweep(n)
+    f = K[:, 1, 1]
+    lam = np.array(
+        [division_lambda_for_corner_shift(corner_shift * 1000.0 / fi, WIDTH, HEIGHT, fi) for fi in f]
+    )
+    return K, H, zoom, lam
+
+
+def feed_distorted_zoom(
+    session: cs.CalibratorSession, K, H, zoom, lam, every: int = 8, seed: int = 0
+) -> list:
+    """feed() with the keyframe matches on distorted pixels (each keyframe its own coefficient); the
+    frames' homographies are the undistorted truth."""
+    rng = np.random.default_rng(seed)
+    pp = np.array(PP)
+    outs = []
+    for j in range(len(H)):
+        kf = j % every == 0
+        state = "NEW_KEYFRAME" if kf else "TRACKING"
+        frame = cs.FrameInput(j / 30.0, H[j], state, WIDTH, HEIGHT, j - j % every, "ref", float(zoom[j]))
+        outs.append(session.process(frame))
+        if kf and j >= every:
+            b = j - every
+            xa = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], (300, 2))
+            xu = division_undistort(xa, lam[j], pp, K[j][1, 1])
+            xb = division_distort(apply_homography(H[b] @ np.linalg.inv(H[j]), xu), lam[b], pp, K[b][1, 1])
+            ok = np.isfinite(xb).all(axis=1) & (xb >= 0).all(axis=1) & (xb < (WIDTH, HEIGHT)).all(axis=1)
+            session.add_keyframe_matches(j, b, xa[ok] + rng.normal(0, 0.2, (ok.sum(), 2)), xb[ok])
+        if kf:
+            session.step(5.0)
+    return outs
+
+
+@pytest.mark.parametrize("corner_shift", [0.12, 0.04])
+def test_a_distorted_lens_without_distortion_estimation_is_a_model_mismatch(corner_shift: float) -> None:
+    """Barrel distortion not modelled (estimate_distortion off): the matches fit one homography per pair
+    far worse than the tracker's noise. The status says MODEL_MISMATCH with the reason, never CONVERGED
+    and never DEGENERATE_MOTION (the motion is fine: the same sweep undistorted converges)."""
+    K, H, zoom, lam = distorted_zoom_sweep(corner_shift=corner_shift)
+    session = cs.CalibratorSession(session_config(nominal_hfov_deg=50.0))
+    outs = feed_distorted_zoom(session, K, H, zoom, lam)
+    statuses = {o.status for o in outs}
+    assert S.CONVERGED not in statuses and S.DEGENERATE_MOTION not in statuses, statuses
+    assert outs[-1].status == S.MODEL_MISMATCH and "tracker's noise" in outs[-1].message
+    # the same sweep without distortion: the check lets it converge
+    plain = feed_distorted_zoom(
+        cs.CalibratorSession(session_config(nominal_hfov_deg=50.0)), K, H, zoom, 0 * lam
+    )
+    assert plain[-1].status == S.CONVERGED
