@@ -192,6 +192,11 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
     assert all(n["package"] == "ptz_selfcal" for n in nodes)
     handlers = [a for a in actions if a.args and type(a.args[0]).__name__ == "Recorded"]
     assert len(handlers) == len(nodes)  # one exit handler per node: status 2 shuts the launch down
+    on_exit = handlers[0].args[0].kwargs["on_exit"]
+    node = types.SimpleNamespace(name="frame_ingest")
+    (shutdown,) = on_exit(types.SimpleNamespace(returncode=2, action=node), context)
+    assert "configuration error" in shutdown.kwargs["reason"]
+    assert on_exit(types.SimpleNamespace(returncode=-9, action=node), context) == []  # respawned
 
 
 def test_default_yaml_lists_every_node_parameter_with_its_default_and_a_description():
