@@ -135,9 +135,9 @@ FAMILIES: tuple[Family, ...] = (
     Family(
         "patrol",
         "pan-dominant patrol: 120 frames 960x540 mono8 at 5 fps, pan +-50 deg, tilt +-2.5 deg, "
-        "2 s dwell at the turn, zoom 1.5x, hfov 60",
+        "2 s dwell at the turn, zoom 1.5x, hfov 50",
         "--motion patrol --pan-amplitude 50 --tilt-amplitude 2.5 --tilt-cycles 1 --dwell 2 --zoom-max 1.5 "
-        "--hfov 60 --frames 120 --fps 5 --width 960 --height 540 --format mono8",
+        "--hfov 50 --frames 120 --fps 5 --width 960 --height 540 --format mono8",
         SOFT_TUNE,
         SOFT_HELD,
     ),
