@@ -28,7 +28,13 @@ Pipeline (ptz_selfcal_msgs):
 - HOMOGRAPHY: HomographyStamped, one per frame; KEYFRAMES: KeyframeMatches for the bundle adjustment.
 - CAMERA_INFO: sensor_msgs/CameraInfo, exactly one per processed image, header copied from the image,
   full-resolution width/height, K, P = [K|0], R = I, plumb_bob D = [k1, k2, 0, 0, 0].
-- FRAME_CALIBRATION: FrameCalibration (status, uncertainty, orientation, encoders).
+- FRAME_CALIBRATION: FrameCalibration (status, uncertainty, orientation, encoders), one per image. sigma_f
+  is an honest 1-sigma that includes the sequence's common scale error (section 6.2). Status (message
+  constants, never renumbered): INITIALISING (K from the prior), CALIBRATING, CONVERGED (a promise:
+  |fx - f| <= 3 sigma_f in >= 95 % of CONVERGED frames and none more than 1 % off), DEGENERATE_MOTION
+  (the motion does not determine the calibration, section 6; the reason in the log), MODEL_MISMATCH (the
+  keyframe matches fit the lens model far worse than the tracker's noise: distortion not modelled, a
+  rolling shutter; never CONVERGED), TRACKING_LOST (last good K), PREDICTED_FROM_ZOOM (the zoom model's K).
 - ORIENTATION: geometry_msgs/TransformStamped per frame whose orientation is known, the image's stamp:
   the camera (child_frame) in the calibration's reference frame (reference_frame), rotation only (tf2_msgs
   for /tf is not among this environment's packages; a tf relay can republish it).
