@@ -8,6 +8,8 @@ import pytest
 
 from ptz_selfcal.camera.geometry import work_from_full
 from ptz_selfcal.nodes.conversions import (
+    MSG_TO_STATUS,
+    STATUS_TO_MSG,
     FrameError,
     ImageLimits,
     camera_info_fields,
@@ -17,6 +19,7 @@ from ptz_selfcal.nodes.conversions import (
     image_to_working,
     mono8_from_msg,
 )
+from ptz_selfcal.status import WARN_STATUSES, CalibrationStatus
 
 RNG = np.random.default_rng(7)
 W, H = 320, 240
@@ -289,3 +292,16 @@ def test_serialized_image_truncated_is_malformed_and_sizes_checked_on_the_view()
     with pytest.raises(FrameError) as exc:
         image_to_working(parsed, 160, ImageLimits(max_bytes=W * H - 1))
     assert exc.value.kind == "too_large"
+
+
+def test_status_constants_keep_their_values_and_model_mismatch_is_added():
+    """Evaluators read FrameCalibration.status by number: the six first values never move, and
+    MODEL_MISMATCH (a lens model that does not fit) is a seventh, mapped both ways, a diagnostics WARN."""
+    from ptz_selfcal_msgs.msg import FrameCalibration
+
+    before = ("INITIALISING", "CALIBRATING", "CONVERGED", "DEGENERATE_MOTION", "TRACKING_LOST")
+    assert [getattr(FrameCalibration, name) for name in (*before, "PREDICTED_FROM_ZOOM")] == list(range(6))
+    mismatch = CalibrationStatus.MODEL_MISMATCH
+    assert STATUS_TO_MSG[mismatch] == FrameCalibration.MODEL_MISMATCH == 6
+    assert MSG_TO_STATUS[6] is mismatch and mismatch in WARN_STATUSES
+    assert CalibrationStatus.CONVERGED not in WARN_STATUSES
