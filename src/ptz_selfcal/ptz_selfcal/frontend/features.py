@@ -8,6 +8,7 @@ All coordinates here are working-resolution pixels; the tracker converts to full
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -109,23 +110,114 @@ def track_klt(
 
 
 def gain_matched(previous: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """Previous frame rescaled to the current mean brightness (KLT assumes constant brightness)."""
-    mean_prev = float(cv2.mean(previous)[0])
-    mean_cur = float(cv2.mean(image)[0])
-    if mean_prev < 1.0 or abs(mean_cur / mean_prev - 1.0) < 0.02:
-        return previous
-    return cv2.convertScaleAbs(previous, alpha=mean_cur / mean_prev)
+    """Previous frame with the current frame's brightness (KLT assumes constant brightness): as
+    gain_matched_warp, over the whole image."""
+    return gain_matched_warp(previous, image)
+
+
+# Working pixels per cell of the brightness-ratio fit (the cells' means are taken on every 4th pixel of
+# every 4th row: plenty for a smooth field) and the cells' usable grey range (the log ratio of dark or
+# saturated cells is noise or clipped).
+GAIN_CELL = 16
+_GAIN_STEP = 4
+_GAIN_RANGE = (6.0, 250.0)
+# Brightness ratios within this of 1 everywhere are left alone (not worth a resample).
+_GAIN_TOLERANCE = 0.02
 
 
 def gain_matched_warp(warped: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """As gain_matched, with the means taken where the warped keyframe has data (not the border)."""
-    sub_warp, sub_image = warped[::4, ::4], image[::4, ::4]  # a 1/16 sample is plenty for a gain
+    """The warped keyframe with the current frame's brightness, where it has data (not the border).
+
+    The ratio of the two is smooth but not constant: an exposure step scales all of it, while a
+    vignetting fixed in the image moves with the content, so its ratio varies across the frame. It is
+    fitted as exp of a quadratic in the image coordinates to the log ratio of cell means, robustly
+    (moving objects and occlusions are outlying cells), and the warped image is multiplied by it."""
+    field = brightness_ratio(warped, image)
+    if field is None:
+        return warped
+    if isinstance(field, float):
+        return cv2.convertScaleAbs(warped, alpha=field)
+    return cv2.multiply(warped, field, dtype=cv2.CV_8U)  # rounded and saturated
+
+
+def _normalised(x: np.ndarray, size: int) -> np.ndarray:
+    """Pixel coordinates to [-1, 1] over the image."""
+    half = 0.5 * (size - 1)
+    return ((x - half) / half).astype(np.float32)
+
+
+def _quadratic_terms(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    gx, gy = np.meshgrid(x, y)
+    return np.stack([np.ones_like(gx), gx, gy, gx * gx, gx * gy, gy * gy], axis=-1)
+
+
+@lru_cache(maxsize=8)
+def _gain_grids(w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """The quadratic's terms at the cell centres (gh, gw, 6) and on the quarter-resolution grid that
+    cv2.resize maps onto the pixels (qh, qw, 6), for a w x h image (read-only)."""
+    k = GAIN_CELL // _GAIN_STEP
+    centre = GAIN_CELL * np.arange(max(w, h) // GAIN_CELL) + _GAIN_STEP * (k - 1) / 2.0  # sampled pixels
+    cells = _quadratic_terms(
+        _normalised(centre[: w // GAIN_CELL], w), _normalised(centre[: h // GAIN_CELL], h)
+    )
+    qw, qh = -(-w // _GAIN_STEP), -(-h // _GAIN_STEP)
+    qx = _normalised((np.arange(qw) + 0.5) * (w / qw) - 0.5, w)
+    qy = _normalised((np.arange(qh) + 0.5) * (h / qh) - 0.5, h)
+    quarter = _quadratic_terms(qx, qy)
+    cells.flags.writeable = quarter.flags.writeable = False
+    return cells, quarter
+
+
+def brightness_ratio(warped: np.ndarray, image: np.ndarray) -> np.ndarray | float | None:
+    """image / warped as a smooth (h, w) float32 field, a constant when too few cells support a fit,
+    None when the ratio is within _GAIN_TOLERANCE of 1 (or nothing to measure it on). Within the
+    outer half cell the field is held at its value there (no extrapolation)."""
+    h, w = image.shape[:2]
+    gw, gh = w // GAIN_CELL, h // GAIN_CELL
+    if gw < 3 or gh < 3:
+        return _mean_ratio(warped, image)
+
+    def cell_means(img: np.ndarray) -> np.ndarray:
+        sub = img[: gh * GAIN_CELL : _GAIN_STEP, : gw * GAIN_CELL : _GAIN_STEP].astype(np.float32)
+        return cv2.resize(sub, (gw, gh), interpolation=cv2.INTER_AREA)  # exact: an integer factor
+
+    a, b = cell_means(warped), cell_means(image)
+    lo, hi = _GAIN_RANGE
+    ok = cell_means((warped == 0).view(np.uint8)) == 0  # the warped keyframe covers the cell
+    ok &= (a >= lo) & (a <= hi) & (b >= lo) & (b <= hi)
+    if ok.sum() < 3:
+        return _mean_ratio(warped, image)
+    log_ratio = np.log(b[ok] / a[ok])
+    cells, quarter = _gain_grids(w, h)
+    A = cells[ok]
+    if len(A) < 4 * A.shape[1]:  # too few cells for a field: one gain
+        gain = float(np.exp(np.median(log_ratio)))
+        return None if abs(gain - 1.0) < _GAIN_TOLERANCE else gain
+    keep = np.ones(len(A), bool)
+    for _ in range(3):  # least squares, then again without the outlying cells
+        Ak = A[keep]
+        coef = np.linalg.solve(Ak.T @ Ak, Ak.T @ log_ratio[keep])
+        residual = np.abs(A @ coef - log_ratio)
+        spread = max(1.4826 * float(np.median(residual[keep])), 0.01)
+        updated = residual < 3.0 * spread
+        if updated.sum() < 2 * A.shape[1] or np.array_equal(updated, keep):
+            break
+        keep = updated
+    log_field = quarter @ coef.astype(np.float32)
+    if float(np.abs(log_field).max()) < np.log1p(_GAIN_TOLERANCE):
+        return None
+    return cv2.resize(np.exp(log_field), (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def _mean_ratio(warped: np.ndarray, image: np.ndarray) -> float | None:
+    """The ratio of mean brightness where the warped keyframe has data (a 1/16 sample)."""
+    sub_warp, sub_image = warped[::4, ::4], image[::4, ::4]
     valid = sub_warp > 0
     mean_warp = float(sub_warp[valid].mean()) if valid.any() else 0.0
     mean_cur = float(sub_image[valid].mean()) if valid.any() else 0.0
-    if mean_warp < 1.0 or abs(mean_cur / mean_warp - 1.0) < 0.02:
-        return warped
-    return cv2.convertScaleAbs(warped, alpha=mean_cur / mean_warp)
+    if mean_warp < 1.0 or abs(mean_cur / mean_warp - 1.0) < _GAIN_TOLERANCE:
+        return None
+    return mean_cur / mean_warp
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ class TrackerConfig:
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
     repeat_threshold: float = 5.0  # re-warp and re-track when the prediction was off by more (full px)
     verify_threshold: float = 16.0  # fits further than this from the prediction are checked by descriptors
-    gain_compensation: bool = True  # match mean brightness before KLT (+-20% exposure changes)
+    gain_compensation: bool = True  # match brightness before KLT: a smooth gain field (exposure, vignetting)
     seed: int = 0
 
     def __post_init__(self) -> None:
