@@ -1,7 +1,11 @@
 """Issue 15 "Measure": the shipped defaults, no parameter file, over bag families a user could have.
 
     ros2_ws/venv/bin/python benchmarks/defaults.py [--seeds N] [--jobs 2] [--quick] [--families a,b]
-        [--work-dir /tmp/defaults_bench] [--deterministic] [--write]
+        [--work-dir /tmp/defaults_bench] [--deterministic] [--write] [--list]
+
+--list prints the synth command of every bag (to make a family's bags for development); --quick runs
+the first held-out seed of each family only. The full run (10 seeds, 100 runs) is sized for about 30
+minutes on an idle 2-core machine with --jobs 2 when the bags are not cached yet.
 
 Each family is a `ptz-selfcal synth` command (FAMILIES below; panorama, resolution, frame rate,
 encoding, motion and lens vary between them) rendered with seeds 0 .. N-1; the seed also turns the
