@@ -202,3 +202,45 @@ def _header(t: float, frame_id: str):
     from std_msgs.msg import Header
 
     return Header(stamp=stamp_of(t), frame_id=frame_id)
+
+
+def test_a_bag_played_into_another_namespace_is_calibrated_there(
+    ros_env, start_process, short_synth_bag, tmp_path
+):
+    """An existing bag (its topics under /ptz) played into /cam1 (`play --namespace`) beside a suite
+    launched there, on its compressed transport: every image gets its CameraInfo in /cam1, and nothing is
+    published under /ptz."""
+    from sensor_msgs.msg import CameraInfo
+
+    from ptz_selfcal import topics
+    from ptz_selfcal.tools.bagio import BagReader, header_stamp_ns
+
+    with BagReader(short_synth_bag) as reader:
+        compressed = topics.bag_topic(topics.IMAGE_COMPRESSED)
+        images = {header_stamp_ns(m.raw) for m in reader.messages([compressed])}
+    params = tmp_path / "compressed.yaml"
+    # reliable: a best-effort reader may miss the first image while it matches the player, and this test
+    # counts every image
+    ingest = {"image_transport": "compressed", "sensor_reliability": "reliable"}
+    params.write_text(yaml.safe_dump({"frame_ingest": {"ros__parameters": ingest}}))
+    suite = start_process(
+        cli_command("launch", "--namespace", NAMESPACE, "--params", str(params)), ros_env, "launch_play"
+    )
+    d = Driver()
+    try:
+        assert d.spin(90.0, lambda: d.info_sub.get_publisher_count() > 0), suite.output()
+        infos: dict[int, object] = {}
+        d.node.create_subscription(
+            CameraInfo, topics.CAMERA_INFO, lambda m: infos.setdefault(stamp_ns(m.header.stamp), m), 100
+        )
+        played = [compressed, topics.bag_topic(topics.JOINT_STATES)]
+        command = cli_command("play", str(short_synth_bag), "--namespace", NAMESPACE, "--topics", *played)
+        play = start_process([*command, "--wait-subscribers", "60"], ros_env, "play_cam1")
+        assert d.spin(60.0, lambda: set(infos) >= images), (len(infos), len(images), suite.output()[-3000:])
+        assert play.wait(30.0) == 0, play.output()
+        names = {n for n, _ in d.node.get_topic_names_and_types()}
+    finally:
+        d.close()
+    assert suite.stop(timeout=20.0) == 0, suite.output()
+    assert set(infos) == images
+    assert f"{NAMESPACE}/image_raw/compressed" in names and not any(n.startswith("/ptz/") for n in names)

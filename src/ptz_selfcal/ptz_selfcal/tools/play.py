@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 
+from ptz_selfcal import topics
 from ptz_selfcal.tools.bagio import BagReader, msg_class
 from ptz_selfcal.tools.cli import CliError
 
@@ -24,12 +25,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="SECONDS",
         help="before publishing, wait up to this long until every topic has a subscriber",
     )
+    parser.add_argument(
+        "--namespace",
+        metavar="NS",
+        help=f"publish the bag's {topics.NAMESPACE}/... topics under NS/... (another camera's namespace)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
 def run(args: argparse.Namespace) -> int:
     if not (args.rate >= 0.0) or args.rate > 1000.0:
         raise CliError(f"--rate must be in [0, 1000], got {args.rate}")
+    if args.namespace is not None:
+        from ptz_selfcal.tools.launch import check_namespace
+
+        args.namespace = check_namespace(args.namespace) or "/"
     with BagReader(args.bag) as reader:
         topics = [t for t in reader.topics() if args.topics is None or t.name in args.topics]
         if not topics:
@@ -53,7 +63,10 @@ def _play(args: argparse.Namespace, classes: dict[str, type]) -> int:
 
     rclpy.init()
     node = rclpy.create_node("ptz_selfcal_play")
-    publishers = {name: node.create_publisher(cls, name, reliable_qos()) for name, cls in classes.items()}
+    publishers = {
+        name: node.create_publisher(cls, in_namespace(name, args.namespace), reliable_qos())
+        for name, cls in classes.items()
+    }
     sent = 0
     try:
         _wait_for_subscribers(node, publishers, args.wait_subscribers)
@@ -72,6 +85,14 @@ def _play(args: argparse.Namespace, classes: dict[str, type]) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     return 0
+
+
+def in_namespace(name: str, namespace: str | None) -> str:
+    """A bag topic of the default namespace moved into `namespace` (others stay as they are)."""
+    prefix = topics.NAMESPACE + "/"
+    if namespace is None or not name.startswith(prefix):
+        return name
+    return topics.resolve(name.removeprefix(prefix), namespace)
 
 
 def _wait_for_subscribers(node, publishers: dict, timeout: float) -> None:
