@@ -40,7 +40,6 @@ from ptz_selfcal.selfcal.degeneracy import (
     STATUS_SINGLE_AXIS,
     MotionReport,
     analyse_motion,
-    rotation_vectors,
     second_axis_missing,
     single_axis_is_degenerate,
 )
@@ -402,9 +401,18 @@ def information_features(
     view in radians that scales the rotations (default the frames' median)."""
     H = np.asarray(H, dtype=float).reshape(-1, 3, 3)
     K = intrinsics_from_transferred_diac(H, K_ref, model, image_size)
-    R = rotations_from_homographies(np.concatenate([np.eye(3)[None], H]), np.concatenate([K_ref[None], K]))[
-        1:
-    ]
+    R = rotations_from_homographies(np.concatenate([np.eye(3)[None], H]), np.concatenate([K_ref[None], K]))
+    return features_of(K, R[1:], image_size, fov)
+
+
+def features_of(K: Array, R: Array, image_size: tuple[int, int], fov: float | None = None) -> Array:
+    """information_features of frames whose K (n, 3, 3) and R relative to the reference are known."""
+    K, R = np.asarray(K, dtype=float).reshape(-1, 3, 3), np.asarray(R, dtype=float).reshape(-1, 3, 3)
     if fov is None:
         fov = float(np.median(2.0 * np.arctan(0.5 * image_size[0] / K[:, 1, 1])))
-    return np.column_stack([rotation_vectors(R) / fov, np.log(K[:, 1, 1])])
+    # the rotation vectors in closed form (angles below 180 deg): this runs on every frame
+    w = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    sin = np.linalg.norm(w, axis=1)
+    angle = np.arctan2(sin, 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0))
+    rotvec = w * np.where(sin > 1e-12, angle / np.maximum(sin, 1e-300), 1.0)[:, None]
+    return np.column_stack([rotvec / fov, np.log(K[:, 1, 1])])

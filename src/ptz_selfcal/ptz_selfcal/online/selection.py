@@ -6,9 +6,10 @@ rotation and zoom information that self-calibration needs (section 3: the paper 
 The frame path proposes an ordinary frame for the solve when it is far from every member of the
 bounded set in the metric the set is pruned in (online/incremental.information_features: rotation
 in fields of view, log f, under the current or prior calibration): it adds rotation axes, angles or
-zoom the set does not have. Once the set is full, only a frame farther from it than the set's own
-closest pair is proposed (it would replace that pair's redundant member), so the proposals stop
-once the set spans what the camera has seen. O(k) per frame, k <= max_keyframes + 1.
+zoom the set does not have. Once the set is full, only a frame farther from it than its members are
+from their nearest neighbours (median) is proposed: it fills a gap, and the solve drops the redundant
+member of the closest pair for it, so the proposals stop once the set spans what the camera has
+seen. O(k) per frame, k <= max_keyframes + 1.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ptz_selfcal.camera.intrinsics import SelfCalibrationError
-from ptz_selfcal.online.incremental import IncrementalCalibrator, information_features
+from ptz_selfcal.online.incremental import IncrementalCalibrator, features_of, information_features
 
 Array = NDArray[np.float64]
 
@@ -36,7 +37,7 @@ class CalibrationFrameSelector:
         self.spacing = float(spacing)  # the smallest distance of a proposal from every member
         self._members: dict[int, tuple[Array, Array]] = {}  # id -> (H reference -> frame, feature)
         self._basis: tuple[int, float] | None = None  # (calibrator id, f_ref) the features are under
-        self._closest = math.inf  # the members' closest pair (when full)
+        self._gap = math.inf  # the members' median distance to their nearest neighbour (when full)
         self.next_id = -1
 
     def member(self, frame_id: int, H: Array, calibrator: IncrementalCalibrator) -> None:
@@ -45,16 +46,20 @@ class CalibrationFrameSelector:
         if feature is not None:
             self._add(frame_id, H, feature)
 
-    def propose(self, H: Array, calibrator: IncrementalCalibrator) -> int | None:
-        """The id under which this ordinary frame joins the solve, None when it adds too little."""
-        feature = self._feature(H, calibrator)
+    def propose(
+        self, H: Array, calibrator: IncrementalCalibrator, KR: tuple[Array, Array] | None = None
+    ) -> int | None:
+        """The id under which this ordinary frame joins the solve, None when it adds too little. KR: the
+        frame's K and R relative to the reference when the frame path has them already (eq. 20 from its
+        keyframe), which spares a transfer per frame."""
+        feature = self._feature(H, calibrator, KR)
         if feature is None:
             return None
         if self._members:
             features = np.array([f for _, f in self._members.values()])
             nearest = float(np.min(np.linalg.norm(features - feature, axis=1)))
             full = len(self._members) >= self.capacity
-            if not nearest > max(self.spacing, self._closest if full else 0.0):
+            if not nearest > max(self.spacing, self._gap if full else 0.0):
                 return None
         frame_id = self.next_id
         self.next_id -= 1
@@ -65,7 +70,7 @@ class CalibrationFrameSelector:
         """A new reference: the set starts again (ids keep counting down)."""
         self._members.clear()
         self._basis = None
-        self._closest = math.inf
+        self._gap = math.inf
 
     def keep_only(self, frame_ids: set[int]) -> None:
         """The solve's set as its latest snapshot holds it (with the frames not handed to it yet):
@@ -83,13 +88,18 @@ class CalibrationFrameSelector:
         return len(self._members)
 
     # ----------------------------------------------------------------------------------------------
-    def _feature(self, H: Array, calibrator: IncrementalCalibrator) -> Array | None:
+    def _feature(
+        self, H: Array, calibrator: IncrementalCalibrator, KR: tuple[Array, Array] | None = None
+    ) -> Array | None:
         K_ref = calibrator.reference_K
         fov = 2.0 * math.atan(0.5 * calibrator.image_size[0] / K_ref[1, 1])
         basis = (id(calibrator), float(K_ref[1, 1]))
         if basis != self._basis:  # a new calibration: the members' features under it (O(k))
             self._basis = basis
             self._recompute(calibrator, fov)
+        if KR is not None:
+            feature = features_of(KR[0], KR[1], calibrator.image_size, fov)[0]
+            return feature if np.all(np.isfinite(feature)) else None
         return self._transfer(H, calibrator, fov)
 
     def _recompute(self, calibrator: IncrementalCalibrator, fov: float) -> None:
@@ -135,7 +145,9 @@ class CalibrationFrameSelector:
 
     def _update_closest(self) -> None:
         full = len(self._members) >= self.capacity
-        self._closest = float(np.min(self._distances())) if full and len(self._members) > 1 else math.inf
+        self._gap = (
+            float(np.median(np.min(self._distances(), axis=1))) if full and len(self) > 1 else math.inf
+        )
 
 
 def _is_reference(H: Array) -> bool:

@@ -187,7 +187,7 @@ class CalibratorSession:
         if frame.tracking_state == TrackingState.NEW_KEYFRAME and kid not in self._seen_keyframes:
             self._keyframe_added(frame, kid, H, fast, verdict)
         elif frame.tracking_state == TrackingState.TRACKING and verdict is ZoomVerdict.PASS and not fast:
-            self._propose(frame, H)
+            self._propose(frame, H, None if calibrated is None else calibrated[:2])
         if verdict is ZoomVerdict.REFUSE:
             self._counters["zoom_gate_rejections"] += 1
             return self._without_homography(frame)
@@ -231,12 +231,12 @@ class CalibratorSession:
             if calibrator is not None:
                 self._selector.member(kid, H, calibrator)
 
-    def _propose(self, frame: FrameInput, H: Array) -> None:
+    def _propose(self, frame: FrameInput, H: Array, KR: tuple[Array, Array] | None) -> None:
         """An ordinary frame joins the solve when it adds rotation or zoom to the set (online/selection)."""
         calibrator = self._set_calibrator() if self.config.calibration_frames else None
         if calibrator is None:
             return
-        frame_id = self._selector.propose(H, calibrator)
+        frame_id = self._selector.propose(H, calibrator, KR)
         if frame_id is None:
             return
         kid = int(frame.keyframe_id)
