@@ -11,7 +11,8 @@ firmly to the wrong f. So the policy asks, in this order:
    and a rolling shutter bend the map only smoothly across a cell); the model's misfit is one homography
    over the whole pair (the exact map of a rotating pinhole camera, section 2.2) or, with distortion
    estimated, the bundle adjustment's residual noise. Far above: MODEL_MISMATCH, whatever the motion.
-2. the solver's own verdict (INITIALISING, CALIBRATING, DEGENERATE_MOTION stand).
+2. the solver's own verdict (INITIALISING, CALIBRATING, DEGENERATE_MOTION stand); a lens model whose
+   fit is not measured yet is not CONVERGED.
 3. the honest 1-sigma of f: the adjustment's covariance is scaled by its own residuals, which its
    noise-free virtual correspondences and its fitted rays make smaller than the tracker's noise, so
    sigma is rescaled to the tracker's noise; above max_sigma_f: CALIBRATING.
@@ -82,9 +83,10 @@ class ModelFit:
     """The fits of the recent keyframe match sets (bounded), pooled: the tracker's noise and the
     pinhole model's misfit, both as the rms transfer error of one coordinate in pixels."""
 
-    def __init__(self, max_pairs: int = 32, min_dof: int = 200) -> None:
+    def __init__(self, max_pairs: int = 32, min_dof: int = 150, min_pairs: int = 2) -> None:
         self.max_pairs = max_pairs
         self.min_dof = min_dof
+        self.min_pairs = min_pairs
         self._fits: OrderedDict[Hashable, PairFit] = OrderedDict()
 
     def add(self, key: Hashable, points: Array, other_points: Array) -> None:
@@ -101,7 +103,7 @@ class ModelFit:
 
     def _pooled(self, ss: str, dof: str) -> float:
         total = sum(getattr(f, dof) for f in self._fits.values())
-        if len(self._fits) < 3 or total < self.min_dof:
+        if len(self._fits) < self.min_pairs or total < self.min_dof:
             return math.nan
         return math.sqrt(sum(getattr(f, ss) for f in self._fits.values()) / total)
 
@@ -162,6 +164,8 @@ def decide(policy: StatusPolicy, e: StatusEvidence) -> tuple[CalibrationStatus, 
         )
     if state != _S.CONVERGED:
         return state, message
+    if not ratio <= policy.max_misfit_ratio:
+        return _S.CALIBRATING, "the lens model's fit to the keyframe matches is not measured yet"
     if not e.sigma_f <= policy.max_sigma_f:
         return _S.CALIBRATING, f"1-sigma of f {100 * e.sigma_f:.2g}% > {100 * policy.max_sigma_f:.2g}%"
     bound = policy.max_lens_model_change
