@@ -494,17 +494,19 @@ def test_fixed_lens_biased_by_distortion_is_not_converged() -> None:
 
     K, H, _ = sweep(61, pan_deg=30.0, tilt_deg=6.0, zoom=False)
     lam = division_lambda_for_corner_shift(0.06, WIDTH, HEIGHT, 1000.0)
-    plain = cs.CalibratorSession(fixed_lens_config())
+    plain = cs.CalibratorSession(fixed_lens_config(estimate_distortion=False))
     outs = feed_distorted(plain, K, H, lam)
     f = plain.calibration.calibrator.reference_K[1, 1]
     assert abs(f / 1000.0 - 1.0) > 5e-3
     assert S.CONVERGED not in {o.status for o in outs}
     assert outs[-1].status == S.MODEL_MISMATCH and "tracker's noise" in outs[-1].message
-    unmatched = cs.CalibratorSession(fixed_lens_config(model_mismatch_ratio=1e6))
+    unmatched = cs.CalibratorSession(fixed_lens_config(estimate_distortion=False, model_mismatch_ratio=1e6))
     outs = feed_distorted(unmatched, K, H, lam)
     assert outs[-1].status == S.CALIBRATING and "radial term" in outs[-1].message
     unchecked = cs.CalibratorSession(
-        fixed_lens_config(converged_max_lens_model_change=1.0, model_mismatch_ratio=1e6)
+        fixed_lens_config(
+            estimate_distortion=False, converged_max_lens_model_change=1.0, model_mismatch_ratio=1e6
+        )
     )
     assert feed_distorted(unchecked, K, H, lam)[-1].status == S.CONVERGED
 

@@ -119,6 +119,9 @@ class SessionLensHook:
         self._size: tuple[int, int] | None = None
         self.held_keyframes = 0
         self.uncorrectable_frames = 0  # calibrated session, frame the lens correction cannot correct
+        # the solver's adjustment found no distortion (its estimate's lam all zero, bundle/selection.py):
+        # the tracked homographies go on as they are, as with estimate_distortion false
+        self.pinhole = False
 
     def _ensure(self, reference: str, width: int, height: int) -> LensCorrection | None:
         if width <= 0 or height <= 0:
@@ -147,11 +150,12 @@ class SessionLensHook:
     ) -> tuple[Array | None, str]:
         """The frame's homography on corrected coordinates, and its tracking state.
 
-        `calibrated`: the session already holds a calibration (on corrected coordinates) for this
-        reference. A raw homography must then never reach it (a distorted lens's raw homography puts
-        the focal length far off): a frame the correction cannot reach (its state is not persisted,
-        so after a restart on a restored tracker map it starts empty) goes out without a homography,
-        K from the zoom model.
+        `calibrated`: the session already holds a calibration for this reference, on corrected
+        coordinates once the correction has an estimate. A raw homography must then never reach it
+        (a distorted lens's raw homography puts the focal length far off): a frame the correction
+        cannot reach (its state is not persisted, so after a restart on a restored tracker map it
+        starts empty) goes out without a homography, K from the zoom model. A lens found without
+        distortion (`pinhole`) gets its tracked homographies.
         """
         lens = self._ensure(reference, width, height)
         if lens is None or H is None or not np.all(np.isfinite(H)):
@@ -161,14 +165,18 @@ class SessionLensHook:
         if state == TrackingState.NEW_KEYFRAME:
             lens.add_keyframe(kid, H)
             waiting = self._early_links.pop(kid, None)
-        corrected = lens.frame_homography(H, kid)
+        corrected = None if self.pinhole else lens.frame_homography(H, kid)
         if waiting is not None:
             # its matches came first; linked after its own frame is corrected, as when they come after
             # (the two topics are not ordered: a frame's correction must not depend on which came first)
             self._link_now(lens, kid, *waiting)
+        if self.pinhole:  # nothing to correct; the correction keeps its chains for a change of model
+            return H, state
         if corrected is not None:
             return corrected, state
-        if calibrated:
+        if calibrated and (lens.snapshot is not None or not lens.has_keyframe(kid)):
+            # (before the first estimate the session's calibration was made on the same uncorrected
+            # chains as this frame's: it goes on)
             self.uncorrectable_frames += 1
             return None, TrackingState.TRACKING_LOST
         if self.hold_keyframes and state == TrackingState.NEW_KEYFRAME and kid != lens.reference_id:
@@ -241,7 +249,7 @@ class SessionLensHook:
         assert snap is not None
         # the session's keyframes were stored with the correction known when they arrived: give them
         # their chains recomputed with the new estimate
-        if calibrator is not None:
+        if calibrator is not None and not self.pinhole:
             session.replace_keyframe_homographies(snap.H)
         if self.joint_bundle:  # the adjustment fits the distortion itself: the raw points went already
             return True
@@ -272,10 +280,18 @@ class SessionLensHook:
         if estimate is None or estimate is self._estimate:
             return False
         self._estimate = estimate
+        pinhole = bool(estimate.lam) and all(v == 0.0 for v in estimate.lam.values())
+        # back to distortion: the corrected chains go to the session at this update
+        rechain = self.pinhole and not pinhole
+        if pinhole and not self.pinhole:  # the session's keyframes back on their tracked homographies
+            ids = {} if lens.snapshot is None else lens.snapshot.H
+            tracked = {k: lens.tracked_homography(k) for k in ids}
+            session.replace_keyframe_homographies({k: H for k, H in tracked.items() if H is not None})
+        self.pinhole = pinhole
         pp = np.asarray(estimate.principal_point, dtype=float)
         sigma = np.asarray(estimate.sigma_pp, dtype=float)
         if not (np.all(np.isfinite(pp)) and np.all(np.isfinite(sigma)) and sigma.max() < self.centre_gate_px):
-            return False
+            return rechain
         moved = self.centre is None or float(np.hypot(*(pp - self.centre))) > 0.1
         self.centre = pp
         if moved:
@@ -283,7 +299,7 @@ class SessionLensHook:
             lens.set_centre(pp)
         # its coefficients too (about that centre): they come from the raw points of every keyframe
         # of the solve
-        return lens.set_joint(dict(estimate.focal), dict(estimate.lam)) or moved
+        return lens.set_joint(dict(estimate.focal), dict(estimate.lam)) or moved or rechain
 
     def _centre(self, K: Array) -> Array | None:
         # the distortion centre and the principal point are nearly interchangeable in rotation-only

@@ -67,9 +67,11 @@ class SessionConfig:
     )
     bundle_adjustment: bool = setting(True, "refine LM with the keyframe bundle adjustment (section 5)")
     ba_principal_point: str = setting(
-        "constant",
-        "principal point in the bundle adjustment: constant or varying (per keyframe), both with the prior",
-        choices=("constant", "varying"),
+        "auto",
+        "principal point in the bundle adjustment, with the MAP prior: constant, varying (per keyframe: a "
+        "zoom lens moving it, section 5.3.1), or auto: varying only while it wins the information "
+        "criterion (BIC) against constant on the keyframe matches, re-decided at every solve",
+        choices=("auto", "constant", "varying"),
     )
     pp_prior_sigma_px: float = setting(
         20.0,
@@ -165,13 +167,19 @@ class SessionConfig:
     # In the session this is the fixed lens's one coefficient (bundle/adjust distortion="shared"); the
     # node gives a zooming lens's estimate_distortion to lens/hook.SessionLensHook instead.
     estimate_distortion: bool = setting(
-        False,
-        "radial distortion (issue 6). focal_model varying: through lens/hook.SessionLensHook, "
+        True,
+        "radial distortion (section 7). focal_model varying: through lens/hook.SessionLensHook, "
         "division model about the principal point estimated in the keyframe bundle adjustment on the raw "
         "keyframe matches (lam(f) curve), homographies corrected with it before self-calibration. "
         "focal_model constant: ONE division coefficient for the lens, estimated with K in that "
-        "adjustment. D = its plumb_bob fit at each frame's K. Off by default: on an undistorted lens it "
-        "costs accuracy (benchmarks/results/distortion.txt)",
+        "adjustment. D = its plumb_bob fit at each frame's K. With distortion_selection, adopted only "
+        "while the data shows it; false: a pinhole lens, D = 0",
+    )
+    distortion_selection: bool = setting(
+        True,
+        "with estimate_distortion: every solve fits the adjustment with and without distortion on the "
+        "same raw keyframe matches and keeps distortion only while it wins the information criterion "
+        "(BIC), so a lens without distortion gets none; false: distortion always estimated",
     )
     # sigma_f is honest (online/status_policy.py): below this bound 1 % is several sigma away
     converged_max_sigma_f: float = setting(

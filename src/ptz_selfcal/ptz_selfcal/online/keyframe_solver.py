@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ptz_selfcal.bundle import bundle_adjust, pair_observations
+from ptz_selfcal.bundle.selection import ModelChoice, compare_models
 from ptz_selfcal.camera.geometry import (
     apply_homography,
     pixel_grid,
@@ -35,6 +36,10 @@ from ptz_selfcal.selfcal.result import SelfCalibrationResult
 from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
 
 Array = NDArray[np.float64]
+
+# LM iterations of an alternative lens model probed from the adopted one's solution: near it, a few
+# steps take most of the decrease in cost the criterion compares
+PROBE_ITERATIONS = 6
 
 
 @dataclass
@@ -91,9 +96,20 @@ class KeyframeBundleSolver:
         # a fixed lens: see measure_lens_model_change (last solve), measured when first asked for
         # (the session asks only when the solve could otherwise be CONVERGED)
         self._lens_model_change_value = math.nan
+        # lens-model selection (bundle/selection.py) of the last solve: None before the first
+        self.distortion_adopted: bool | None = None
+        self.distortion_delta_bic = math.nan
+        self.pp_varying_adopted: bool | None = None
+        self.pp_delta_bic = math.nan
         self._lens_check: _LensCheck | None = None  # the solve's inputs until it is measured
         # a fixed lens: the last adjustment (reference keyframe id, K, keyframe id -> R), _warm_start
         self._warm: tuple[Hashable, Array, dict[Hashable, Array]] | None = None
+
+    def _pp_varying(self) -> bool:
+        """The principal point per keyframe in the next adjustment (auto: as adopted last, constant
+        until the evidence shows it moving)."""
+        mode = self.config.ba_principal_point
+        return mode == "varying" or (mode == "auto" and bool(self.pp_varying_adopted))
 
     def set_lens_model(self, model: LensModel | None) -> None:
         """The lens model the next solves start from (None: undistorted input)."""
@@ -113,10 +129,11 @@ class KeyframeBundleSolver:
         max_nfev: int,
     ) -> SelfCalibrationResult:
         lens = self._lens  # this solve's lens model
-        if lens is not None:
+        if lens is not None and self.distortion_adopted is not False:
             # the keyframes' homographies as the lens correction has them now (chained or provisional):
             # the ones stored at arrival may come from an older correction, and the frames are
-            # corrected with the current one (a stale keyframe homography puts its frames off)
+            # corrected with the current one (a stale keyframe homography puts its frames off); a
+            # lens found without distortion keeps the tracked ones, as its frames do (lens/hook.py)
             H = H.copy()
             for i, kf in enumerate(keyframes, start=1):
                 H_now = lens.keyframe_homography(kf.keyframe_id)
@@ -310,14 +327,8 @@ class KeyframeBundleSolver:
             linked = _linked_to_reference(pairs, len(lm.K))
             absent = [j for j in range(1, len(lm.K)) if not linked[j]]
             pairs = [p for p in pairs if linked[p[0]] and linked[p[1]]]
-        if fixed:  # one K for every image: a per-keyframe principal point would not be a fixed lens
-            model = self.config.intrinsics_model()
-        else:
-            model = IntrinsicsModel(
-                principal_point=ParamMode.VARYING
-                if self.config.ba_principal_point == "varying"
-                else ParamMode.CONSTANT
-            )
+        # a fixed lens: one K for every image, a per-keyframe principal point would not be a fixed lens
+        model = self.config.intrinsics_model() if fixed else _pp_model(self._pp_varying())
         sigma = self.config.pp_prior_sigma_px
         prior = (np.array(image_centre(image_size)), np.array([sigma, sigma]))
         noise = self.config.ba_noise_sigma_px
@@ -327,22 +338,83 @@ class KeyframeBundleSolver:
         renumber = np.full(len(lm.K), -1, dtype=np.intp)
         renumber[keep] = np.arange(len(keep))
         pairs = [(int(renumber[a]), int(renumber[b]), pa, pb) for a, b, pa, pb in pairs]
-        result = bundle_adjust(
-            pair_observations(pairs),
-            lm.K[keep],
-            lm.R[keep],
-            image_size,
-            model,
-            pp_prior=prior,
-            noise_sigma=noise,
-            max_iterations=self.config.ba_max_iterations,
-            tolerance=self.config.ba_tolerance,
-            initial_damping=self.config.ba_initial_damping,
-            f_min=0.2 * float(np.min(lm.K[:, 1, 1])),
-            distortion=False if lam0 is None else ("shared" if shared else self.distortion_mode),
-            lam_init=None if lam0 is None else lam0[keep],
-        )
+        observations = pair_observations(pairs)
+        f_min = 0.2 * float(np.min(lm.K[:, 1, 1]))
+        radial = False if lam0 is None else ("shared" if shared else self.distortion_mode)
+
+        def adjust(
+            start: SelfCalibrationResult, distorted: bool, pp_model: IntrinsicsModel, probe: bool = False
+        ) -> SelfCalibrationResult:
+            """The adjustment from LM's start, or from an adjusted solution (warm). A probe only
+            measures an alternative's cost: a few iterations, no covariance, no motion analysis."""
+            warm = start.bundle is not None
+            lam_init = None
+            if distorted and lam0 is not None:
+                lam_init = lam0[keep]
+                if warm and start.bundle is not None and start.bundle.lam is not None:
+                    lam_init = start.bundle.lam
+            return bundle_adjust(
+                observations,
+                start.K if warm else start.K[keep],
+                start.R if warm else start.R[keep],
+                image_size,
+                pp_model,
+                rays_init=start.bundle.rays if warm and start.bundle is not None else None,
+                pp_prior=prior,
+                noise_sigma=noise,
+                max_iterations=min(self.config.ba_max_iterations, PROBE_ITERATIONS)
+                if probe
+                else self.config.ba_max_iterations,
+                tolerance=self.config.ba_tolerance,
+                initial_damping=self.config.ba_initial_damping,
+                f_min=f_min,
+                distortion=radial if distorted else False,
+                lam_init=lam_init,
+                analyse=not probe,
+                uncertainty=not probe,
+            )
+
+        def select(
+            current: SelfCalibrationResult,
+            distorted: bool,
+            pp_model: IntrinsicsModel,
+            richer: bool,
+            extra: int,
+        ) -> tuple[SelfCalibrationResult, ModelChoice]:
+            """current against the alternative (distorted, pp_model; richer: with `extra` more unknowns)
+            probed from its solution: the winner, adjusted in full from LM's start, as a first solve
+            would be, when it is the alternative (a change of model is rare)."""
+            probe = adjust(current, distorted, pp_model, probe=True)
+            simple, rich = (current, probe) if richer else (probe, current)
+            choice = compare_models(simple, rich, extra)
+            if choice.richer != richer:
+                return current, choice
+            return adjust(lm, distorted, pp_model), choice
+
+        distorted = lam0 is not None and self.distortion_adopted is not False
+        result = adjust(lm, distorted, model)
+        if lam0 is not None and self.config.distortion_selection:
+            # distortion or none, by evidence on these raw matches (bundle/selection.py): the model
+            # adopted last is adjusted, the other probed from its solution
+            extra = _radial_unknowns(radial, len(keep))
+            result, choice = select(result, not distorted, model, not distorted, extra)
+            self.distortion_delta_bic = choice.delta_bic
+            self.distortion_adopted = choice.richer
+        if not fixed and self.config.ba_principal_point == "auto":
+            # a principal point that moves with zoom (MAP, eq. 27) or a constant one (section 5.3.1)
+            varying = self._pp_varying()
+            radial_now = bool(result.bundle is not None and result.bundle.lam is not None)
+            pp_alt = _pp_model(not varying)
+            result, choice = select(result, radial_now, pp_alt, not varying, 2 * (len(keep) - 1))
+            self.pp_delta_bic = choice.delta_bic
+            self.pp_varying_adopted = choice.richer
+            model = _pp_model(choice.richer)
         details = result.bundle
+        assert details is not None  # bundle_adjust always returns its details
+        if lam0 is not None and details.lam is None:  # no distortion: the evidence shows none
+            zero = np.zeros(len(keep))
+            details = dataclasses.replace(details, lam=zero, sigma_lam=np.full(len(keep), np.nan))
+            result = dataclasses.replace(result, bundle=details)
         assert details is not None  # bundle_adjust always returns its details
         if (
             lam0 is not None
@@ -430,7 +502,7 @@ class KeyframeBundleSolver:
         it stops once f has moved by twice converged_max_lens_model_change (the verdict is made), so
         a value above the bound is how far f moved at least. NaN when the alternative does not
         solve."""
-        with_distortion = not self.config.estimate_distortion
+        with_distortion = not (self.config.estimate_distortion and self.distortion_adopted is not False)
         try:
             alt = bundle_adjust(
                 pair_observations(pairs),
@@ -541,6 +613,16 @@ def uncertain_motion(result: SelfCalibrationResult) -> bool:
         and bool(np.all(np.isfinite(result.K)))
         and bool(np.all(result.K[:, 1, 1] > 0.0))
     )
+
+
+def _pp_model(varying: bool) -> IntrinsicsModel:
+    return IntrinsicsModel(principal_point=ParamMode.VARYING if varying else ParamMode.CONSTANT)
+
+
+def _radial_unknowns(radial: bool | str, n_frames: int) -> int:
+    """The distortion unknowns bundle_adjust adds: one coefficient per frame, one for the lens, or the
+    lam(f) curve's (its default degree 2: three)."""
+    return {"shared": 1, "curve": 3}.get(str(radial), n_frames)
 
 
 def _guess(lens: LensModel, keyframe_id: int | None, f: float) -> float:
