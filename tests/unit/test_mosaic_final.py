@@ -1,8 +1,9 @@
-"""mosaic/final.py: every frame through the run's last solve, on exact homographies of known cameras.
+"""mosaic/final.py: every frame through the run's solves, on exact homographies of known cameras.
 
-The frames before the solve carry the prior's K and an orientation computed with it, an earlier solve
-a slightly wrong K: after the re-derivation every frame has its true K and R (the homographies are
-exact, so the only error left is arithmetic).
+The frames before the first solve carry the prior's K and an orientation computed with it, an earlier
+solve a 3 % long K: after the re-derivation the frames of keyframes the final solve published, and those
+of keyframes no solve published, have their true K and R (the homographies are exact, so the only error
+left is arithmetic); a keyframe only the earlier solve published keeps that solve's calibration.
 """
 
 from __future__ import annotations
@@ -53,18 +54,24 @@ def _errors(out: list, K: list, R: list) -> tuple[float, float]:
     return f_err, r_err
 
 
-def test_every_frame_gets_the_final_solves_calibration() -> None:
+def test_frames_before_the_first_solve_get_the_final_solves_calibration() -> None:
     K, R = _truth(60)
-    frames = _published(K, R, 15, 40)
+    frames = _published(K, R, 15, 40, keyframe_every=5)  # keyframes 0-2: no solve published them
     assert final_solve(frames) == (5, 0.3)
     out = final_calibration(frames, SIZE)
     assert all(o is not None for o in out)
-    f_err, r_err = _errors(out, K, R)
+    exact = [*range(15), *range(40, 60)]
+    f_err, r_err = _errors([out[j] for j in exact], [K[j] for j in exact], [R[j] for j in exact])
     assert f_err < 1e-9 and r_err < 1e-9
-    # principal point of the final solve everywhere (constant principal point model)
-    assert max(abs(o.K[0, 2] - CX) + abs(o.K[1, 2] - CY) for o in out) < 1e-6
-    # the published values were off: the prior's 13 % and the early solve's 3 % in f
-    assert _errors(frames, K, R)[0] > 0.1
+    # principal point of the final solve (constant principal point model)
+    assert max(abs(out[j].K[0, 2] - CX) + abs(out[j].K[1, 2] - CY) for j in exact) < 1e-6
+    # the published values were off: the prior's 13 % in f
+    assert _errors(frames[:15], K[:15], R[:15])[0] > 0.1
+    # keyframes 3-7 only the earlier solve published: its calibration, transferred within the keyframe
+    for j in range(15, 40):
+        assert frames[out[j].anchor].solve == (3, 0.4)
+        assert frames[out[j].anchor].keyframe_id == frames[j].keyframe_id
+        assert abs(out[j].K[0, 0] / K[j][0, 0] - 1.03) < 1e-9
 
 
 def test_anchors_keep_what_they_published_and_share_keyframes() -> None:
@@ -95,7 +102,7 @@ def test_untracked_frames_and_runs_without_a_solve() -> None:
 @pytest.mark.parametrize("fixed_lens", [True, False])
 def test_a_fixed_lens_keeps_one_k(fixed_lens: bool) -> None:
     K, R = _truth(40, fixed_lens=fixed_lens)
-    out = final_calibration(_published(K, R, 10, 20), SIZE)
+    out = final_calibration(_published(K, R, 10, 10), SIZE)
     f = np.array([o.K[0, 0] for o in out])
     if fixed_lens:
         assert np.all(f == 600.0)  # the published K itself, not a transfer of it

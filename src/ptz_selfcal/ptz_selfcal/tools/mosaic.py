@@ -3,9 +3,10 @@
 IN_BAG is either an output bag of `ptz-selfcal run` (it holds ptz/selfcal/camera_info and
 ptz/selfcal/frame; the images come from the same bag or from --input-bag) or an input bag (images and
 encoders), which is first run through the real nodes (tools/run.py) into a temporary directory.
-By default (--calibration final) every tracked frame is placed through the run's FINAL calibration
-(mosaic/final.py: K and R re-derived from the last solve through the frame's homography, eq. 20), so the
-frames published before convergence are placed too; frames without a homography
+By default (--calibration final) every tracked frame is placed through the run's final calibration
+(mosaic/final.py: K and R re-derived through the frame's homography, eq. 20, from its keyframe's
+latest solve, or the last solve for a keyframe no solve published), so the frames published before
+the first solve are placed too; frames without a homography
 (tracking lost) and frames of another tracking reference than the one whose final solve places most
 are skipped and counted. --calibration published places each frame through its published K, plumb_bob
 D and orientation instead, skipping the invalid zero quaternion and, unless --all-frames, the frames
