@@ -511,6 +511,10 @@ def run(args: argparse.Namespace) -> int:
         report["performance"]["run_frames_per_wall_s"] = frames / run_info["wall_s"]
     plots = [] if args.no_plots else [str(p) for p in write_plots(series, out_dir)]
     report["plots"] = plots
+    if not args.no_plots:  # the mosaic, a picture of the run too (tools/mosaic.eval_mosaic)
+        from ptz_selfcal.tools.mosaic import eval_mosaic  # here: tools/mosaic imports this module
+
+        report["mosaic"] = eval_mosaic(data, output_bag, Path(source) if source else output_bag, out_dir)
     path = write_json(report, out_dir / "report.json")
     print(format_table(report))
     if report.get("figures"):
