@@ -284,6 +284,7 @@ class KeyframeCalibration:
             misfit=self._misfit(),
             tracker_noise=self.model_fit.tracker_noise,
             lens_model_change=self.solver.measure_lens_model_change if self.config.fixed_lens else None,
+            adjusted=calibrator.last_solve is not None and "+" in calibrator.last_solve.method,
         )
         return decide(self.policy, evidence)
 

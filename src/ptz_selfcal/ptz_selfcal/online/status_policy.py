@@ -13,7 +13,8 @@ firmly to the wrong f. So the policy asks, in this order:
    estimated, the bundle adjustment's residual noise. Far above: MODEL_MISMATCH, whatever the motion.
 2. the solver's own verdict (INITIALISING, CALIBRATING, DEGENERATE_MOTION stand); a lens model whose
    fit is not measured yet is not CONVERGED.
-3. the honest 1-sigma of f: the adjustment's covariance is scaled by its own residuals, which its
+3. the honest 1-sigma of f, from the bundle adjustment (LM on eq. 22 weighs algebraic residuals, not
+   image noise): the adjustment's covariance is scaled by its own residuals, which its
    noise-free virtual correspondences and its fitted rays make smaller than the tracker's noise, so
    sigma is rescaled to the tracker's noise; above max_sigma_f: CALIBRATING.
 4. a fixed lens: f must not move when the radial term is toggled (keyframe_solver's lens-model check).
@@ -137,6 +138,7 @@ class StatusEvidence:
     misfit: float  # the lens model's residual noise, px (transfer error per coordinate; NaN: unknown)
     tracker_noise: float  # the same, of the local fits: the tracker's noise (NaN: unknown)
     lens_model_change: Callable[[], float] | None = None  # measured only when it can decide
+    adjusted: bool = True  # the solve ended in the bundle adjustment (sigma in image noise)
 
 
 def honest_sigma(
@@ -166,6 +168,8 @@ def decide(policy: StatusPolicy, e: StatusEvidence) -> tuple[CalibrationStatus, 
         return state, message
     if not ratio <= policy.max_misfit_ratio:
         return _S.CALIBRATING, "the lens model's fit to the keyframe matches is not measured yet"
+    if not e.adjusted:
+        return _S.CALIBRATING, "LM on eq. 22 alone: its sigma is not in image noise (no adjustment yet)"
     if not e.sigma_f <= policy.max_sigma_f:
         return _S.CALIBRATING, f"1-sigma of f {100 * e.sigma_f:.2g}% > {100 * policy.max_sigma_f:.2g}%"
     bound = policy.max_lens_model_change
