@@ -182,7 +182,7 @@ def test_frame_ingest_reports_error_on_inputs_it_cannot_use(harness: Harness, st
         each=lambda: harness.send_joints(("cam_pan_joint", "cam_tilt_joint", "cam_zoom")),
     )
     assert "carry none of joint_names ['pan', 'tilt', 'zoom']" in wrong.message, wrong
-    assert wrong.hardware_id == "ptz"  # the default camera_name
+    assert wrong.hardware_id == "ptz"  # camera_name "": the default namespace names the camera
 
     # images in an encoding the node cannot read, with usable encoders: ERROR for the images
     def unusable() -> None:

@@ -17,9 +17,10 @@ NODES = ("frame_ingest", "homography_tracker", "calibrator")
 
 
 @pytest.fixture
-def launch_env(ros_env) -> tuple[dict[str, str], list[str]]:
-    """Environment and extra arguments for the real node suite."""
-    return ros_env, []
+def launch_env(ros_env, tmp_path) -> tuple[dict[str, str], list[str]]:
+    """Environment and extra arguments for the real node suite: a ROS_HOME of the test's own, where
+    launch keeps the calibration state by default."""
+    return {**ros_env, "ROS_HOME": str(tmp_path / "ros_home")}, []
 
 
 def started_pids(output: str) -> dict[str, list[int]]:
@@ -94,6 +95,11 @@ def test_three_processes_ctrl_c_stops_all_with_exit_0(launch_env, start_process)
     out = proc.output()
     assert "[launch] stopped (frame_ingest: 0, homography_tracker: 0, calibrator: 0); 0 restarts" in out, out
     assert "[frame_ingest] " in out  # output prefixed with the node name
+    # persistence by default, per camera (the namespace names it), under ROS_HOME
+    state_dir = Path(env["ROS_HOME"]) / "ptz_selfcal" / "cam7"
+    (started,) = [line for line in out.splitlines() if "[cam7.calibrator]: calibrating" in line]
+    assert f"state_dir {state_dir};" in started, out
+    assert f"saved the calibration state to {state_dir}" in out, out
 
 
 def test_killed_node_is_restarted_and_supervisor_kill_leaves_no_orphan(launch_env, start_process):

@@ -116,7 +116,9 @@ def test_second_camera_by_namespace_alone_pairs_relay_and_camera_info(ros_env, s
     from sensor_msgs.msg import CompressedImage, Image, JointState
 
     proc = start_process(
-        cli_command("launch", "--namespace", NAMESPACE, "--params", str(params_file)), ros_env, "launch_cam1"
+        cli_command("launch", "--namespace", NAMESPACE, "--params", str(params_file)),
+        {**ros_env, "ROS_HOME": str(params_file.parent / "ros_home")},  # where launch keeps the state
+        "launch_cam1",
     )
     d = Driver()
     try:
@@ -224,7 +226,9 @@ def test_a_bag_played_into_another_namespace_is_calibrated_there(
     ingest = {"image_transport": "compressed", "sensor_reliability": "reliable"}
     params.write_text(yaml.safe_dump({"frame_ingest": {"ros__parameters": ingest}}))
     suite = start_process(
-        cli_command("launch", "--namespace", NAMESPACE, "--params", str(params)), ros_env, "launch_play"
+        cli_command("launch", "--namespace", NAMESPACE, "--params", str(params)),
+        {**ros_env, "ROS_HOME": str(tmp_path / "ros_home")},
+        "launch_play",
     )
     d = Driver()
     try:

@@ -119,8 +119,9 @@ def wait_for(proc: NodeProcess, texts: list[str], timeout: float) -> bool:
 def test_launch_runs_from_the_install_space_and_stops_on_ctrl_c(colcon_install: Path, tmp_path: Path) -> None:
     proc = start_installed(colcon_install, tmp_path, "ptz-selfcal", "launch")
     try:
-        # each node logs its start-up line (after its parameters were read from the installed config)
-        started = [f"[launch] started {n}" for n in NODES] + [f"[{n}]: " for n in NODES]
+        # each node logs its start-up line (after its parameters were read from the installed config), as
+        # logger <namespace>.<node>
+        started = [f"[launch] started {n}" for n in NODES] + [f".{n}]: " for n in NODES]
         ok = wait_for(proc, started, 180.0)
         out = proc.output()
         assert ok and proc.alive(), out
@@ -146,7 +147,7 @@ def test_the_installed_config_is_found_through_the_ament_index(colcon_install: P
 def test_a_node_runs_from_the_install_space(colcon_install: Path, tmp_path: Path) -> None:
     proc = start_installed(colcon_install, tmp_path, "frame_ingest", "--ros-args", "-p", "camera_name:=cam9")
     try:
-        assert wait_for(proc, ["[frame_ingest]: "], 120.0) and proc.alive(), proc.output()
+        assert wait_for(proc, ["ptz.frame_ingest]: "], 120.0) and proc.alive(), proc.output()
         # it is a node of the graph: its diagnostics come with the camera_name it was given
         assert diagnostics_hardware_ids(20.0) == {"cam9"}, proc.output()
     finally:

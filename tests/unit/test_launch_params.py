@@ -19,7 +19,9 @@ LAUNCH_FILE = Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal" / "lau
 
 
 def _params(data, namespace=None, **kwargs):
-    return {n.name: n.parameters for n in plan_suite(data, namespace, **kwargs)}
+    """Each node's planned parameters but camera_name (every plan sets it; its own test checks it)."""
+    plan = plan_suite(data, namespace, **kwargs)
+    return {n.name: {k: v for k, v in n.parameters.items() if k != "camera_name"} for n in plan}
 
 
 def test_tracker_without_state_dir_gets_the_calibrators():
@@ -33,7 +35,7 @@ def test_tracker_without_state_dir_gets_the_calibrators():
     assert out["calibrator"] == {"state_dir": "/var/lib/cam1"}
     # no tracker section at all, a section for this namespace only
     data = {"/cam2/calibrator": {"ros__parameters": {"state_dir": "/s"}}}
-    assert _params(data, "/cam2")["homography_tracker"] == {"state_dir": "/s", "camera_name": "cam2"}
+    assert _params(data, "/cam2")["homography_tracker"] == {"state_dir": "/s"}
     assert "state_dir" not in _params(data, "/cam3")["homography_tracker"]
 
 
@@ -91,10 +93,32 @@ def test_plan_names_namespace_sections_camera_name_and_remaps():
     assert {n.namespace for n in default} == {"/ptz"}
     assert {n.parameters["camera_name"] for n in default} == {"dome"}
     assert {n.parameters["camera_name"] for n in plan_suite({}, "/cam1", camera_name="axis")} == {"axis"}
-    assert all("camera_name" not in n.parameters for n in plan_suite({}, None))  # the nodes' default
+    assert {n.parameters["camera_name"] for n in plan_suite({}, None)} == {"ptz"}  # the default namespace's
+    # the shipped file's "" names nothing: each camera is its namespace's, so two never share a state
+    shipped = {"/**": {"ros__parameters": {"camera_name": ""}}}
+    assert {n.parameters["camera_name"] for n in plan_suite(shipped, "/cam2")} == {"cam2"}
+    # a private namespace (run's) does not name the camera
+    private = plan_suite({}, "/ptz_selfcal_run_7", name_from_namespace=False)
+    assert {n.parameters["camera_name"] for n in private} == {"ptz"}
     for bad in ({"namespace": "/1cam"}, {"remaps": ["image_raw"]}):
         with pytest.raises(CliError):
             plan_suite({}, **bad)
+
+
+def test_launch_persists_each_camera_under_ros_home_unless_told_otherwise():
+    from ptz_selfcal.tools.launch import state_root
+
+    assert state_root({"ROS_HOME": "/rh", "HOME": "/h"}) == "/rh/ptz_selfcal"
+    assert state_root({"HOME": "/h"}) == "/h/.ros/ptz_selfcal"
+    by_name = _params({}, "/cam1", state_root="/rh/ptz_selfcal")
+    assert by_name["calibrator"]["state_dir"] == "/rh/ptz_selfcal/cam1"
+    assert by_name["homography_tracker"]["state_dir"] == "/rh/ptz_selfcal/cam1"  # the map beside it
+    assert _params({}, None, state_root="/rh")["calibrator"]["state_dir"] == "/rh/ptz"  # the default camera
+    named = _params({}, "/cam1", camera_name="dome", state_root="/rh")
+    assert named["calibrator"]["state_dir"] == "/rh/dome"
+    own = {"calibrator": {"ros__parameters": {"state_dir": "/var/lib/cam1"}}}
+    assert _params(own, "/cam1", state_root="/rh")["calibrator"]["state_dir"] == "/var/lib/cam1"
+    assert "state_dir" not in _params({}, "/cam1")["calibrator"]  # run, eval, --no-persist: none
 
 
 def test_cli_launch_gives_each_node_its_planned_place_and_parameters(tmp_path):
@@ -162,7 +186,8 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
     module = _load_launch_file(monkeypatch)
     description = module.generate_launch_description()
     declared = {a.args[0]: a.kwargs.get("default_value") for a in description.args[0] if a.args}
-    assert set(declared) == {"params_file", "namespace", "camera_name", "remappings"}
+    assert set(declared) == {"params_file", "namespace", "camera_name", "remappings", "persist"}
+    assert declared["persist"] == "true"
     assert declared["params_file"] == "/share/ptz_selfcal/config/ptz_selfcal.yaml"
     (opaque,) = [a for a in description.args[0] if "function" in a.kwargs]
     context = types.SimpleNamespace(
@@ -171,8 +196,10 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
             "namespace": "/cam1",
             "camera_name": "",
             "remappings": "image_raw:=camera/image joint_states:=/head/joints",
+            "persist": "true",
         }
     )
+    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
 
     def no_temporary_file(*args, **kwargs):
         raise AssertionError("the launch file wrote a temporary parameter file")
@@ -185,7 +212,9 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
         {"frame_ingest": {"ros__parameters": {"working_width": 320}}},
         "/cam1",
         ["image_raw:=camera/image", "joint_states:=/head/joints"],
+        state_root=str(tmp_path / "ros_home" / "ptz_selfcal"),
     )
+    assert plan[2].parameters["state_dir"] == str(tmp_path / "ros_home" / "ptz_selfcal" / "cam1")
     assert [
         (n["executable"], n["name"], n["namespace"], n["parameters"], n["remappings"]) for n in nodes
     ] == [(p.name, p.name, p.namespace, [p.parameters], list(p.remappings)) for p in plan]

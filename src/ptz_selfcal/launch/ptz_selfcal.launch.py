@@ -1,6 +1,7 @@
 """ROS 2 launch file of the ptz_selfcal node suite, for users with a full ROS install:
     ros2 launch ptz_selfcal ptz_selfcal.launch.py [namespace:=/cam1] [camera_name:=cam1]
         [params_file:=FILE] [remappings:="image_raw:=camera/image joint_states:=/head/joints"]
+        [persist:=false]
 Here, without launch/launch_ros, `ptz-selfcal launch` does the same: both take their node list (names,
 namespace, parameters, remappings) from ptz_selfcal.tools.launch.plan_suite, so they start the same graph
 (tests/unit/test_launch_params.py checks this file's actions against it with stand-ins for launch).
@@ -20,7 +21,13 @@ from launch.event_handlers import OnProcessExit
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from ptz_selfcal.tools.launch import CONFIG_ERROR_STATUS, NODE_MODULES, load_params_file, plan_suite
+from ptz_selfcal.tools.launch import (
+    CONFIG_ERROR_STATUS,
+    NODE_MODULES,
+    load_params_file,
+    plan_suite,
+    state_root,
+)
 
 
 def _on_exit(event, context):
@@ -35,7 +42,11 @@ def _nodes(context, *args, **kwargs):
 
     data = load_params_file(value("params_file"), list(NODE_MODULES))
     plan = plan_suite(
-        data, value("namespace") or None, value("remappings").split(), value("camera_name") or None
+        data,
+        value("namespace") or None,
+        value("remappings").split(),
+        value("camera_name") or None,
+        state_root=state_root() if value("persist").lower() in ("true", "1", "yes") else None,
     )
     actions = []
     for planned in plan:
@@ -69,6 +80,11 @@ def generate_launch_description():
             ),
             DeclareLaunchArgument(
                 "remappings", default_value="", description="space-separated FROM:=TO topic remappings"
+            ),
+            DeclareLaunchArgument(
+                "persist",
+                default_value="true",
+                description="calibrator state in $ROS_HOME/ptz_selfcal/<camera_name> unless state_dir is set",
             ),
             OpaqueFunction(function=_nodes),
         ]

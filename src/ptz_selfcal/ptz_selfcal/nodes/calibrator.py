@@ -47,6 +47,7 @@ from ptz_selfcal.nodes.runtime import (
     CountedWarnings,
     FailureRun,
     InputWatch,
+    camera_name_of,
     qos_overrides,
     reliable_qos,
     run_node,
@@ -102,8 +103,9 @@ class CalibratorNode(Node):
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
         self._orientation_pub = self.create_publisher(TransformStamped, topics.ORIENTATION, reliable_qos(10))
-        self._reference_frame = p["reference_frame"] or f"{p['camera_name']}_selfcal_reference"
-        self._child_frame = p["child_frame"] or f"{p['camera_name']}_selfcal_optical"
+        self._camera_name = camera_name_of(self, p["camera_name"])
+        self._reference_frame = p["reference_frame"] or f"{self._camera_name}_selfcal_reference"
+        self._child_frame = p["child_frame"] or f"{self._camera_name}_selfcal_optical"
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
         # matches first: when both are waiting, the executor takes a keyframe's matches before the next
         # frame's homography (inline_solves then solves with them, whatever the arrival order)
@@ -289,7 +291,7 @@ class CalibratorNode(Node):
         counters["reoptimise_pending"] = self._runner.pending
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
-        status.hardware_id = self._p["camera_name"]
+        status.hardware_id = self._camera_name
         error, warn = [], []
         failing = failing_run.update(self._counts["homographies_in"], self._counts["calibrator_error"])
         if failing >= self._p["error_threshold"]:

@@ -61,6 +61,7 @@ from ptz_selfcal.nodes.runtime import (
     CountedWarnings,
     FailureRun,
     InputWatch,
+    camera_name_of,
     qos_overrides,
     reliable_qos,
     run_node,
@@ -198,7 +199,12 @@ PARAMS = [
     ),
     Param("mono16_max", 65535, "mono16 value shown as white (4095 for a 12-bit sensor)", in_range(1, 65535)),
     Param("diagnostics_period", 1.0, "seconds between DiagnosticArray messages", in_range(0.05, 3600.0)),
-    Param("camera_name", "ptz", "name of the camera, the diagnostics' hardware_id", None),
+    Param(
+        "camera_name",
+        "",
+        "name of the camera, the diagnostics' hardware_id ('': the namespace's last component, /cam1: cam1)",
+        None,
+    ),
     Param(
         "stale_timeout",
         5.0,
@@ -650,7 +656,7 @@ class FrameIngest(Node):
         counters["skipped_total"] = skipped
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
-        status.hardware_id = self._p["camera_name"]
+        status.hardware_id = camera_name_of(self, self._p["camera_name"])
         error, warn = [], []
         # a duplicate (the raw and the compressed copy of one image) is no failure of the input
         duplicates = self._counts["skipped_duplicate_stamp"]

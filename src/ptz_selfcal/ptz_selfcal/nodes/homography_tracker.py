@@ -57,6 +57,7 @@ from ptz_selfcal.nodes.conversions import (
 from ptz_selfcal.nodes.runtime import (
     CountedWarnings,
     FailureRun,
+    camera_name_of,
     qos_overrides,
     reliable_qos,
     run_node,
@@ -109,7 +110,12 @@ PARAMS = [
         "thread, and on shutdown)",
         in_range(0.05, 86400.0),
     ),
-    Param("camera_name", "ptz", "name of the camera, the diagnostics' hardware_id", None),
+    Param(
+        "camera_name",
+        "",
+        "name of the camera, the diagnostics' hardware_id ('': the namespace's last component, /cam1: cam1)",
+        None,
+    ),
     Param(
         "error_threshold",
         3,
@@ -459,7 +465,7 @@ class HomographyTrackerNode(Node):
         counters["keyframes_subscribers"] = self._kf_pub.get_subscription_count()
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
-        status.hardware_id = self._p["camera_name"]
+        status.hardware_id = camera_name_of(self, self._p["camera_name"])
         lost = sum(self._state_counts[state] for state in LOST_STATES)
         failing = self._failing.update(self._counts["frames_in"], self._counts["tracker_error"])
         error = []

@@ -39,7 +39,9 @@ class CalibratorNodeConfig:
         1.0, "seconds between DiagnosticArray messages", bounds=(0.05, 3600.0)
     )
     camera_name: str = setting(
-        "ptz", "name of the camera, the diagnostics' hardware_id (camera_info_manager's camera_name)"
+        "",
+        "name of the camera, the diagnostics' hardware_id (camera_info_manager's camera_name; '': the "
+        "namespace's last component, /cam1: cam1)",
     )
     stale_timeout: float = setting(
         5.0,

@@ -30,6 +30,12 @@ def qos_overrides() -> QoSOverridingOptions:
     return QoSOverridingOptions.with_default_policies()
 
 
+def camera_name_of(node: Node, name: str) -> str:
+    """The camera's name: the camera_name parameter, else the node's namespace's last component (the
+    camera's namespace: /cam1 is cam1, the default /ptz is ptz)."""
+    return name or node.get_namespace().rstrip("/").rsplit("/", 1)[-1] or "camera"
+
+
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "node") -> int:
     """Create the node, spin until Ctrl-C/SIGTERM or rclpy shutdown, then tear down cleanly.
 
@@ -52,10 +58,11 @@ def report_config_error(name: str, message: str, wait: float = CONFIG_ERROR_REPO
 
     from ptz_selfcal import topics
 
-    node = rclpy.create_node(name, namespace=topics.NAMESPACE)
+    # no rosout publisher: the failed node of the same name still holds it
+    node = rclpy.create_node(name, namespace=topics.NAMESPACE, enable_rosout=False)
     try:
         try:
-            hardware_id = str(node.declare_parameter("camera_name", "ptz").value)
+            hardware_id = camera_name_of(node, str(node.declare_parameter("camera_name", "").value))
         except Exception:  # the configuration error may be this parameter's own
             hardware_id = ""
         pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))

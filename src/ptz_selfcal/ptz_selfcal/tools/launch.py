@@ -22,7 +22,9 @@ remappings) is decided by one pure function, plan_suite(), which the ROS launch 
 in any namespace, a homography_tracker without a state_dir of its own gets the calibrator's (a restarted
 tracker reloads its keyframe map), and camera_name (the diagnostics' hardware_id) comes from the
 argument, else the file, else the namespace's last component (/cam1: cam1). The nodes sit in the
-camera's namespace, /ptz unless --namespace names another (topics.py).
+camera's namespace, /ptz unless --namespace names another (topics.py). A calibrator without a state_dir
+keeps its state in $ROS_HOME/ptz_selfcal/<camera_name> (--no-persist: none), so a restarted suite
+starts calibrated; run and eval start fresh unless their parameter file names a state_dir.
 """
 
 from __future__ import annotations
@@ -187,11 +189,14 @@ def plan_suite(
     nodes: Sequence[str] = tuple(NODE_MODULES),
     modules: dict[str, str] | None = None,
     name_from_namespace: bool = True,
+    state_root: str | None = None,
 ) -> list[NodeLaunch]:
     """The node suite to start, pure: `data` is a checked parameter file (load_params_file), namespace and
     remaps (FROM:=TO) as given by the user (checked here). Each node gets the sections of the file that
     match it, in file order, so later sections win as in rcl. name_from_namespace False: a private
-    namespace (run's) does not name the camera."""
+    namespace (run's) does not name the camera. With state_root (launch: state_root()), a calibrator
+    without a state_dir persists in state_root/<camera name> (per camera, as camera_info_manager keeps
+    its files under ROS_HOME)."""
     from ptz_selfcal import topics
 
     ns = check_namespace(namespace) or topics.NAMESPACE
@@ -208,6 +213,13 @@ def plan_suite(
     }
     calibrator = params["calibrator"]
     tracker = params["homography_tracker"]
+    named = camera_name or next((p["camera_name"] for p in params.values() if p.get("camera_name")), None)
+    if not named:  # the camera's namespace names it; a private one (run's) does not: the default's then
+        named = (ns if name_from_namespace else topics.NAMESPACE).rsplit("/", 1)[-1]
+    for p in params.values():
+        p["camera_name"] = named
+    if state_root and not calibrator.get("state_dir"):
+        calibrator["state_dir"] = str(Path(state_root) / named)
     # Not with estimate_distortion (unless a fixed lens): the lens correction's state is not persisted,
     # so a tracker that kept its reference would leave the restored calibration without corrected
     # homographies; a new map re-initialises both (zoom model meanwhile). A fixed lens saves its one
@@ -215,13 +227,15 @@ def plan_suite(
     lens_hook = calibrator.get("estimate_distortion") is True and calibrator.get("focal_model") != "constant"
     if calibrator.get("state_dir") and not lens_hook and "state_dir" not in tracker:
         tracker["state_dir"] = calibrator["state_dir"]
-    named = camera_name or next((p["camera_name"] for p in params.values() if p.get("camera_name")), None)
-    if not named and namespace and name_from_namespace:
-        named = ns.rsplit("/", 1)[-1]
-    if named:
-        for p in params.values():
-            p["camera_name"] = named
     return [NodeLaunch(name, modules[name], ns, params[name], pairs) for name in nodes]
+
+
+def state_root(environ: dict[str, str] | None = None) -> str:
+    """Where `launch` keeps each camera's state by default: $ROS_HOME/ptz_selfcal (ROS_HOME defaults to
+    ~/.ros, as for ROS's own logs and camera_info_manager's files)."""
+    environ = os.environ if environ is None else environ
+    home = environ.get("ROS_HOME") or str(Path(environ.get("HOME") or Path.home()) / ".ros")
+    return str(Path(home) / "ptz_selfcal")
 
 
 def plan_params_file(plan: Sequence[NodeLaunch], directory: str) -> Path:
@@ -504,6 +518,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--remap", nargs="+", default=[], metavar="FROM:=TO", help="topic remappings given to every node"
     )
     parser.add_argument(
+        "--no-persist",
+        action="store_true",
+        help="no calibration state unless the parameter file sets a state_dir (default: the calibrator "
+        "without one keeps its state in $ROS_HOME/ptz_selfcal/<camera_name>)",
+    )
+    parser.add_argument(
         "--nodes",
         nargs="+",
         choices=list(NODE_MODULES),
@@ -584,7 +604,10 @@ def run(args: argparse.Namespace) -> int:
             modules[name] = module
         source = Path(args.params) if args.params else default_params_file()
         data = load_params_file(source, list(NODE_MODULES))
-        plan = plan_suite(data, args.namespace, args.remap, args.camera_name, args.nodes, modules)
+        root = None if args.no_persist else state_root()
+        plan = plan_suite(
+            data, args.namespace, args.remap, args.camera_name, args.nodes, modules, state_root=root
+        )
         specs = [NodeSpec(n.name, n.module) for n in plan]
         remaps = [f"{src}:={dst}" for src, dst in plan[0].remappings] if plan else []
         namespace = plan[0].namespace if plan else None
