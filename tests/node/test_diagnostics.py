@@ -231,3 +231,10 @@ def test_a_configuration_error_is_an_error_status_then_exit_2(harness: Harness, 
     assert "configuration error" in report.message and "working_width" in report.message, report
     assert report.hardware_id == "cam7"
     assert proc.wait(30.0) == 2, proc.output()
+
+
+def test_hardware_id_defaults_to_the_camera_namespace(harness: Harness, start_process) -> None:
+    """A node started by hand in a camera's namespace (no launch, no camera_name) names that camera."""
+    proc = start_process(node_command(INGEST, *INGEST_ARGS, "-r", "__ns:=/cam5"), harness_env(), "ns_ingest")
+    report = harness.wait_report("frame_ingest", lambda r: True, timeout=30.0)
+    assert report.hardware_id == "cam5", (report, proc.output())
