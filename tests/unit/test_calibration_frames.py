@@ -92,7 +92,7 @@ def test_long_focal_small_circle_calibrates() -> None:
     first = first_calibrated(outs)
     assert posed is not None and first is not None and first <= posed + 30, (first, posed)
     err = focal_errors(outs, K)
-    assert np.median(err[posed + 30 :]) < 0.033  # seeds 0-4: at most 1.10 %
+    assert np.median(err[posed + 30 :]) < 0.037  # seeds 0-4: at most 1.24 %
     converged = np.array([o.status == CalibrationStatus.CONVERGED for o in outs])
     assert not np.any(converged & (err > 0.01)), err[converged]
 

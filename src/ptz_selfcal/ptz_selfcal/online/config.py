@@ -59,8 +59,14 @@ class SessionConfig:
     calibration_frame_spacing: float = setting(
         0.03,
         "an ordinary frame joins the solve when it is this far from every frame of the set, in fields of "
-        "view of rotation and log f (and, once the set is full, farther than the set's closest pair)",
+        "view of rotation and log f (and, once the set is full, farther than its members' median gap)",
         bounds=(1e-4, 10.0),
+    )
+    # each one costs a re-optimisation; before the first solve they come as fast as the motion allows
+    calibration_frame_period_s: float = setting(
+        0.5,
+        "once calibrated, an ordinary frame joins the solve at most once per this many seconds of image time",
+        bounds=(0.0, 3600.0),
     )
     max_keyframes: int = setting(
         30, "keyframes kept in the re-optimisation (bounds time and memory)", bounds=(4, 1000)

@@ -122,6 +122,7 @@ class CalibratorSession:
             self.config.max_keyframes + 1, self.config.calibration_frame_spacing
         )
         self._prior: tuple[tuple, IncrementalCalibrator] | None = None
+        self._last_proposal = -math.inf  # stamp of the last ordinary frame proposed
 
     # ---- the frame path --------------------------------------------------------------------------
     def process(self, frame: FrameInput) -> FrameOutput:
@@ -234,6 +235,12 @@ class CalibratorSession:
     def _propose(self, frame: FrameInput, H: Array, KR: tuple[Array, Array] | None) -> None:
         """An ordinary frame joins the solve when it adds rotation or zoom to the set (online/selection)."""
         calibrator = self._set_calibrator() if self.config.calibration_frames else None
+        stamp = float(frame.stamp)
+        if (
+            self.phase is Phase.CALIBRATED
+            and 0.0 <= stamp - self._last_proposal < self.config.calibration_frame_period_s
+        ):
+            return
         if calibrator is None:
             return
         frame_id = self._selector.propose(H, calibrator, KR)
@@ -243,7 +250,7 @@ class CalibratorSession:
         solved = self._snapshot.keyframes.get(kid) if self._snapshot is not None else None
         H_key = solved[0] if solved is not None else self._links.homography.get(kid)
         anchor = None if H_key is None else (kid, H @ np.linalg.inv(H_key))
-        stamp, zoom = float(frame.stamp), float(frame.zoom)
+        zoom, self._last_proposal = float(frame.zoom), stamp
         self._pending.append(
             PendingKeyframe(frame_id, H, stamp, zoom, self._zoom_rate, tracked=False, anchor=anchor)
         )
@@ -403,6 +410,7 @@ class CalibratorSession:
         self._seen_keyframes.clear()
         self._links.forget_reference()
         self._motion.forget()
+        self._last_proposal = -math.inf
         self._tracked_against = None
         self._pending.clear()
         self._selector.forget()
