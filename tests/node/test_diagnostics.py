@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import node_command
 
-ROS_DOMAIN_ID = 121
+ROS_DOMAIN_ID = 127
 W, H = 320, 240
 INGEST = "ptz_selfcal.nodes.frame_ingest"
 CALIBRATOR = "ptz_selfcal.nodes.calibrator"

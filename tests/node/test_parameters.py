@@ -11,7 +11,7 @@ from conftest import NodeProcess, node_command
 
 from ptz_selfcal.topics import NAMESPACE
 
-ROS_DOMAIN_ID = 120
+ROS_DOMAIN_ID = 126  # (+2 for its unconnected node: 128)
 NODES = {
     "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
     "homography_tracker": "ptz_selfcal.nodes.homography_tracker",
