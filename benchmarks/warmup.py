@@ -20,8 +20,9 @@ import time
 import numpy as np
 
 from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
+from ptz_selfcal.sim.metrics import well_posed_frame
 from ptz_selfcal.sim.render import CameraProfile, focal_from_hfov
-from ptz_selfcal.sim.tracked import profile_truth, tracked_frames, well_posed_frame
+from ptz_selfcal.sim.tracked import profile_truth, tracked_frames
 from ptz_selfcal.status import CALIBRATED, CalibrationStatus, TrackingState
 
 

@@ -13,8 +13,9 @@ from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 from ptz_selfcal.online import incremental as inc
 from ptz_selfcal.online import selection
 from ptz_selfcal.online.session import CalibratorSession, FrameInput, SessionConfig
+from ptz_selfcal.sim.metrics import well_posed_frame
 from ptz_selfcal.sim.render import CameraProfile
-from ptz_selfcal.sim.tracked import TrackedFrame, profile_truth, tracked_frames, well_posed_frame
+from ptz_selfcal.sim.tracked import TrackedFrame, profile_truth, tracked_frames
 from ptz_selfcal.status import CALIBRATED, CalibrationStatus, TrackingState
 
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from ptz_selfcal.camera.geometry import apply_homography, normalise_homography, reference_homographies
 from ptz_selfcal.frontend.homography import estimate_homography, local_scale, overlap_fraction
@@ -85,12 +84,3 @@ def profile_truth(profile: CameraProfile, frames: int, fps: float) -> tuple[Arra
     """True K (n, 3, 3) and world -> camera R (n, 3, 3) of a camera profile sampled at fps."""
     state = profile.state(np.arange(frames) / fps)
     return np.array([state.K(i) for i in range(frames)]), np.array([state.R(i) for i in range(frames)])
-
-
-def well_posed_frame(R: Array, min_deg: float = 2.0) -> int | None:
-    """The first frame whose rotation from frame 0 reaches min_deg about each of frame 0's x (tilt)
-    and y (pan) axes (None: never)."""
-    rotvec = Rotation.from_matrix(np.einsum("nij,kj->nik", R, R[0])).as_rotvec()
-    both = np.all(np.abs(np.degrees(rotvec[:, :2])) >= min_deg, axis=1)
-    hits = np.flatnonzero(both)
-    return int(hits[0]) if hits.size else None
