@@ -49,16 +49,12 @@ def kill_during_save(state_dir: Path) -> Path:
 
 
 def test_temporary_of_a_killed_save_is_removed_at_the_next_state_load(tmp_path: Path) -> None:
-    session = cs.CalibratorSession(
-        cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0), state_dir=tmp_path
-    )
+    session = cs.CalibratorSession(cs.SessionConfig(), state_dir=tmp_path)
     session.save()
     saved = (tmp_path / STATE_FILE).read_bytes()
     tmp = kill_during_save(tmp_path)
     assert (tmp_path / STATE_FILE).read_bytes() == saved  # the kill left the old state in place
-    restarted = cs.CalibratorSession(
-        cs.SessionConfig(min_solve_period_s=0.0, max_solve_duty=1.0), state_dir=tmp_path
-    )
+    restarted = cs.CalibratorSession(cs.SessionConfig(), state_dir=tmp_path)
     messages = restarted.restore()
     assert not tmp.exists()
     assert any(str(tmp) in m and "interrupted by a kill" in m for m in messages), messages

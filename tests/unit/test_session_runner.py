@@ -42,9 +42,7 @@ class HeldSolve:
 def converged() -> tuple[CalibratorSession, np.ndarray, np.ndarray, np.ndarray]:
     """A session converged on a zooming sweep, with a usable zoom model (inline solves)."""
     K, H, f = encoded_sweep(120)
-    session = CalibratorSession(
-        SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
-    )
+    session = CalibratorSession(SessionConfig(nominal_hfov_deg=50.0))
     feed(session, H, f)
     assert session.state == CalibrationStatus.CONVERGED
     return session, K, H, f
@@ -136,9 +134,7 @@ def test_the_session_phase_follows_its_events(converged) -> None:
     assert session.phase is Phase.CALIBRATED
     session.process(FrameInput(21.0, np.eye(3), TrackingState.NEW_KEYFRAME, WIDTH, HEIGHT, 7000, "other"))
     assert session.phase is Phase.REFERENCED  # the change reset it, the frame referenced the new map
-    fresh = CalibratorSession(
-        SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
-    )
+    fresh = CalibratorSession(SessionConfig(nominal_hfov_deg=50.0))
     assert fresh.phase is Phase.NO_REFERENCE
     feed(fresh, H, f, frames=range(1))  # the reference alone: nothing to solve yet
     assert fresh.phase is Phase.REFERENCED

@@ -390,9 +390,10 @@ class CalibratorSession:
                 self.phase = Phase.REFERENCED
         return True
 
-    def step(self, max_seconds: float) -> bool:
-        """Run the solving half inline on what was collected; True if it solved."""
-        result = self.calibration.apply(self.take_work(), max_seconds)
+    def step(self, max_seconds: float, paced: bool = True) -> bool:
+        """Run the solving half inline on what was collected; True if it solved (paced: as take_work;
+        False: the schedule of `ptz-selfcal run --deterministic`, no clock in what is solved)."""
+        result = self.calibration.apply(self.take_work(paced), max_seconds)
         self.accept(result)
         return result.solved
 
