@@ -32,10 +32,11 @@ from ptz_selfcal import topics
 from ptz_selfcal.camera.geometry import matrix_from_quaternion
 from ptz_selfcal.mosaic.live import FORMATS, LiveMosaic
 from ptz_selfcal.mosaic.warp import FrameView
-from ptz_selfcal.nodes.conversions import FrameError, declare_params, mono8_from_msg
+from ptz_selfcal.nodes.conversions import MSG_TO_STATUS, FrameError, declare_params, mono8_from_msg
 from ptz_selfcal.nodes.params import config_kwargs, params_from
 from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
 from ptz_selfcal.settings import setting
+from ptz_selfcal.status import CalibrationStatus
 from ptz_selfcal.tools.bagio import header_stamp_ns
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, IngestedFrame
 
@@ -158,7 +159,7 @@ class MosaicNode(Node):
             del store[stamp]
         fc = deserialize_message(raw[1], FrameCalibration)
         self._counts["calibrations_taken"] += 1
-        if fc.status != FrameCalibration.CONVERGED:
+        if MSG_TO_STATUS.get(fc.status) is not CalibrationStatus.CONVERGED:
             self._counts["not_converged"] += 1
             return
         frame = deserialize_message(raw[0], IngestedFrame)
