@@ -442,7 +442,7 @@ def test_zoom_model_sigma_covers_frames_predicted_from_a_lagged_noisy_encoder(tm
     from ptz_selfcal.online import session as cs
 
     K, H, zoom = encoded_sweep(frames)
-    config = cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0)
+    config = cs.SessionConfig(nominal_hfov_deg=50.0)
     first = cs.CalibratorSession(config, state_dir=tmp_path)
     feed(first, H, zoom)
     first.save()
@@ -466,7 +466,7 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
 
     K, H, f = encoded_sweep(120)
     first = cs.CalibratorSession(
-        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
+        cs.SessionConfig(nominal_hfov_deg=50.0),
         state_dir=tmp_path,
     )
     feed(first, H, f)
@@ -478,7 +478,7 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
     first.save()
     (tmp_path / STATE_FILE).unlink()  # the calibration is not restored: a fresh one starts
     second = cs.CalibratorSession(
-        cs.SessionConfig(nominal_hfov_deg=50.0, min_solve_period_s=0.0, max_solve_duty=1.0),
+        cs.SessionConfig(nominal_hfov_deg=50.0),
         state_dir=tmp_path,
     )
     messages = second.restore()
@@ -500,7 +500,7 @@ def test_restarted_calibrator_keeps_the_saved_history_and_learns_on_top(tmp_path
     err, sigma = predicted_from_zoom(replay, K, f)
     assert np.mean(np.abs(err) <= 3.0 * sigma) >= 0.95 and np.median(np.abs(err)) < 0.005
     second.process(cs.FrameInput(9.0, H[5], "TRACKING", CS_W, CS_H, keyframe_id=0, reference_id="other"))
-    second.step(0.0)  # a new reference: the calibration is reset, its keyframes become history
+    second.step(0.0, paced=False)  # a new reference: the calibration is reset, its keyframes become history
     assert (
         second.calibration.zoom_model.live_count == 0 and second.calibration.zoom_model.sample_count == total
     )
