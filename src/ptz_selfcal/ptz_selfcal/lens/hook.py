@@ -49,6 +49,9 @@ class SessionSolver(Protocol):
     @property
     def lens_estimate(self) -> LensEstimate | None: ...
 
+    @property
+    def distortion_adopted(self) -> bool | None: ...
+
     def set_lens_model(self, model: LensModel | None) -> None: ...
 
 
@@ -183,6 +186,11 @@ class SessionLensHook:
             self.held_keyframes += 1
             return H, TrackingState.TRACKING
         return H, state
+
+    def restored(self, session: LensSession) -> None:
+        """A session restored from its saved state: the correction's own state is not saved, but a lens
+        the evidence had found without distortion needs none, so its frames go on calibrated."""
+        self.pinhole = session.solver.distortion_adopted is False
 
     def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
         m = (int(keyframe_id), int(other_keyframe_id), pts, other_pts)

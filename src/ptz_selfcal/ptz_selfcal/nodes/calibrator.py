@@ -88,6 +88,8 @@ class CalibratorNode(Node):
             session.set_distortion(self._lens.distortion)
         for line in session.restore():
             (self.get_logger().warning if line.startswith("WARNING") else self.get_logger().info)(line)
+        if self._lens is not None:
+            self._lens.restored(session)
 
         self._counts: Counter[str] = Counter()
         self._warnings = CountedWarnings(self, self._counts)

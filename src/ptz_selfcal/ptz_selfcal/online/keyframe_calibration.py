@@ -386,6 +386,8 @@ class KeyframeCalibration:
         fixed_distortion = self.config.fixed_lens and self.config.estimate_distortion
         self.solver.shared_lam = saved.shared_lam if fixed_distortion else None
         self.solver.noise_estimate = saved.noise_estimate
+        self.solver.distortion_adopted = saved.distortion_adopted
+        self.solver.pp_varying_adopted = saved.pp_varying_adopted
         self.solver.forget_warm_start()
 
     def restore_zoom_model(self, path: Path) -> list[str]:

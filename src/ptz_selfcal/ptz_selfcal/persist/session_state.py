@@ -38,6 +38,9 @@ class SavedState:
     last_good: FrameOutput | None
     shared_lam: float | None
     noise_estimate: float | None
+    # the lens model the evidence chose (bundle/selection.py; None: not decided yet)
+    distortion_adopted: bool | None = None
+    pp_varying_adopted: bool | None = None
 
 
 def state_to_dict(
@@ -66,8 +69,17 @@ def state_to_dict(
             "shared_lam": solver.shared_lam,  # a fixed lens's distortion (None: none)
             "focal_model": focal_model,
             "noise_estimate": solver.noise_estimate,  # the eq. 27 prior's weight
+            "distortion_adopted": solver.distortion_adopted,
+            "pp_varying_adopted": solver.pp_varying_adopted,
         }
     )
+
+
+def _choice(data: dict, key: str) -> bool | None:
+    value = data.get(key)
+    if value is not None and not isinstance(value, bool):
+        raise StateFileError(f"{key} is {value!r}, not true, false or null")
+    return value
 
 
 def state_from_dict(data: dict, focal_model: str, solver: KeyframeBundleSolver) -> SavedState:
@@ -102,6 +114,8 @@ def state_from_dict(data: dict, focal_model: str, solver: KeyframeBundleSolver) 
             last_good=_last_good(data.get("last_good")),
             shared_lam=shared_lam,
             noise_estimate=None if noise is None or not 0.0 < float(noise) < math.inf else float(noise),
+            distortion_adopted=_choice(data, "distortion_adopted"),
+            pp_varying_adopted=_choice(data, "pp_varying_adopted"),
         )
     except StateFileError:
         raise
