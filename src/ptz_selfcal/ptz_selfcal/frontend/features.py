@@ -110,9 +110,13 @@ def track_klt(
 
 
 def gain_matched(previous: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """Previous frame with the current frame's brightness (KLT assumes constant brightness): as
-    gain_matched_warp, over the whole image."""
-    return gain_matched_warp(previous, image)
+    """Previous frame rescaled to the current mean brightness (KLT assumes constant brightness). One
+    gain: the two are not aligned, so a local ratio would be texture, not light."""
+    mean_prev = float(cv2.mean(previous)[0])
+    mean_cur = float(cv2.mean(image)[0])
+    if mean_prev < 1.0 or abs(mean_cur / mean_prev - 1.0) < _GAIN_TOLERANCE:
+        return previous
+    return cv2.convertScaleAbs(previous, alpha=mean_cur / mean_prev)
 
 
 # Working pixels per cell of the brightness-ratio fit (the cells' means are taken on every 4th pixel of
