@@ -38,8 +38,12 @@ _shared_data_users: list[str] = []
 
 
 @pytest.fixture
-def ros_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
-    """LOCALHOST discovery and the test module's ROS_DOMAIN_ID, for this process and its children."""
+def ros_env(
+    request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch, tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, str]:
+    """LOCALHOST discovery and the test module's ROS_DOMAIN_ID, for this process and its children; a
+    ROS_HOME of the test's own (`launch` keeps a camera's state there by default: no test reads another
+    test's, or the user's ~/.ros)."""
     domain = getattr(request.module, "ROS_DOMAIN_ID", None)
     if domain is None:
         pytest.fail("a test using ros_env must set a module-level ROS_DOMAIN_ID")
@@ -49,6 +53,7 @@ def ros_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> 
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
         "PYTHONUNBUFFERED": "1",
         "RCUTILS_COLORIZED_OUTPUT": "0",
+        "ROS_HOME": str(tmp_path_factory.mktemp("ros_home")),
     }
     for key, value in values.items():
         monkeypatch.setenv(key, value)

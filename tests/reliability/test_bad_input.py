@@ -186,7 +186,8 @@ BAD_PARAMS = [
 def params_file(tmp_path: Path, node: str, name: str, value: object) -> Path:
     path = tmp_path / f"{node}_{name.replace('.', '_')}.yaml"
     text = value if isinstance(value, str) else repr(value)
-    path.write_text(f"{node}:\n  ros__parameters:\n    {name}: {text}\n")
+    # the nodes run in the camera's namespace (/ptz by default): a file for one of them, wherever it runs
+    path.write_text(f"/**/{node}:\n  ros__parameters:\n    {name}: {text}\n")
     return path
 
 
@@ -205,7 +206,7 @@ def test_bad_parameter_value_stops_the_node_at_start_with_a_clear_error(
 def test_contradicting_calibrator_parameters_stop_it_with_a_clear_error(ros_env, start_process, tmp_path):
     path = tmp_path / "fixed_lens_varying_pp.yaml"
     path.write_text(
-        "calibrator:\n  ros__parameters:\n    focal_model: constant\n    ba_principal_point: varying\n"
+        "/**/calibrator:\n  ros__parameters:\n    focal_model: constant\n    ba_principal_point: varying\n"
     )
     proc = start_process(
         node_command(rh.NODE_MODULES["calibrator"], "--params-file", str(path)), ros_env, "cal"
