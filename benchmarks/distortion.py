@@ -76,7 +76,7 @@ def cli_main(argv: list[str]) -> int:
 
 def params_file(path: Path, **calibrator: object) -> Path:
     data = yaml.safe_load(CONFIG.read_text())
-    data["calibrator"]["ros__parameters"].update(calibrator)
+    data["/**/calibrator"]["ros__parameters"].update(calibrator)
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 

@@ -82,8 +82,8 @@ def stamp_ns(stamp: object) -> int:
 
 def params_file(path: Path, time_offset: float, **calibrator: object) -> Path:
     data = yaml.safe_load(CONFIG.read_text())
-    data["calibrator"]["ros__parameters"].update(calibrator)
-    data["frame_ingest"]["ros__parameters"]["encoder_time_offset"] = float(time_offset)
+    data["/**/calibrator"]["ros__parameters"].update(calibrator)
+    data["/**/frame_ingest"]["ros__parameters"]["encoder_time_offset"] = float(time_offset)
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 

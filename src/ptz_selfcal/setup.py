@@ -28,6 +28,7 @@ setup(
             "frame_ingest = ptz_selfcal.nodes.frame_ingest:main",
             "homography_tracker = ptz_selfcal.nodes.homography_tracker:main",
             "calibrator = ptz_selfcal.nodes.calibrator:main",
+            "mosaic = ptz_selfcal.nodes.mosaic_node:main",
         ],
     },
 )

@@ -108,7 +108,7 @@ def test_defaults_are_not_the_calibrators_prior(bags: dict[str, Path]) -> None:
     """A first bag made with the defaults must be solved for: neither its focal length nor its principal
     point is what the shipped parameter file assumes before the first calibration."""
     config = Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"
-    prior = yaml.safe_load(config.read_text())["calibrator"]["ros__parameters"]
+    prior = yaml.safe_load(config.read_text())["/**/calibrator"]["ros__parameters"]
     assert prior["nominal_focal_px"] == 0.0  # the prior comes from nominal_hfov_deg
     info = read_bag(bags["jpeg"])["/ptz/ground_truth/camera_info"][0][1]
     f_prior = focal_from_hfov(W, prior["nominal_hfov_deg"])

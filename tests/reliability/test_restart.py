@@ -78,7 +78,7 @@ def test_kill_9_of_a_node_restarts_it_and_the_calibration_resumes(
         "calibrator": {"state_dir": str(state_dir), "save_period": 0.3, "diagnostics_period": 0.25},
     }
     for node, values in overrides.items():
-        data[node]["ros__parameters"].update(values)
+        data[f"/**/{node}"]["ros__parameters"].update(values)
     params.write_text(yaml.safe_dump(data, sort_keys=False))
     launch = start_process(cli_command("launch", "--params", str(params)), ros_env, "launch")
     feeder = rh.Feeder("restart_feeder", homographies=False)

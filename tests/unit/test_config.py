@@ -78,7 +78,7 @@ def test_parameter_values_give_back_the_config():
 def test_the_shipped_yaml_sets_exactly_the_defaults():
     """Every calibrator key of config/ptz_selfcal.yaml is a parameter, with the dataclass default and
     type (rclpy refuses a double parameter set to an integer), and every parameter is listed."""
-    listed = yaml.safe_load(default_params_file().read_text())["calibrator"]["ros__parameters"]
+    listed = yaml.safe_load(default_params_file().read_text())["/**/calibrator"]["ros__parameters"]
     params = {p.name: p for p in calibrator_params()}
     assert set(listed) == set(params), set(listed) ^ set(params)
     for name, value in listed.items():

@@ -13,7 +13,14 @@ import pytest
 import yaml
 
 from ptz_selfcal.tools.cli import CliError
-from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, plan_params_file, plan_suite
+from ptz_selfcal.tools.launch import (
+    NODE_MODULES,
+    SUITE_NODES,
+    NodeSpec,
+    Supervisor,
+    plan_params_file,
+    plan_suite,
+)
 
 LAUNCH_FILE = Path(__file__).resolve().parents[2] / "src" / "ptz_selfcal" / "launch" / "ptz_selfcal.launch.py"
 
@@ -73,8 +80,8 @@ def test_plan_names_namespace_sections_camera_name_and_remaps():
     }
     plan = plan_suite(data, "cam1/", ["image_raw:=camera/image"])
     assert [(n.name, n.module, n.namespace) for n in plan] == [
-        (name, module, "/cam1") for name, module in NODE_MODULES.items()
-    ]
+        (name, NODE_MODULES[name], "/cam1") for name in SUITE_NODES
+    ]  # the live mosaic only when asked for
     assert all(n.remappings == (("image_raw", "camera/image"),) for n in plan)
     by_name = {n.name: n.parameters for n in plan}
     assert by_name["frame_ingest"] == {
@@ -186,7 +193,8 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
     module = _load_launch_file(monkeypatch)
     description = module.generate_launch_description()
     declared = {a.args[0]: a.kwargs.get("default_value") for a in description.args[0] if a.args}
-    assert set(declared) == {"params_file", "namespace", "camera_name", "remappings", "persist"}
+    assert set(declared) == {"params_file", "namespace", "camera_name", "remappings", "persist", "mosaic"}
+    assert declared["mosaic"] == "false"  # the live mosaic is off by default
     assert declared["persist"] == "true"
     assert declared["params_file"] == "/share/ptz_selfcal/config/ptz_selfcal.yaml"
     (opaque,) = [a for a in description.args[0] if "function" in a.kwargs]
@@ -197,6 +205,7 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
             "camera_name": "",
             "remappings": "image_raw:=camera/image joint_states:=/head/joints",
             "persist": "true",
+            "mosaic": "false",
         }
     )
     monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
@@ -219,6 +228,9 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
         (n["executable"], n["name"], n["namespace"], n["parameters"], n["remappings"]) for n in nodes
     ] == [(p.name, p.name, p.namespace, [p.parameters], list(p.remappings)) for p in plan]
     assert all(n["package"] == "ptz_selfcal" for n in nodes)
+    context.launch_configurations["mosaic"] = "true"  # the optional live mosaic, after the suite
+    with_mosaic = [a.kwargs for a in opaque.kwargs["function"](context) if "executable" in a.kwargs]
+    assert [n["executable"] for n in with_mosaic] == [*(p.name for p in plan), "mosaic"]
     handlers = [a for a in actions if a.args and type(a.args[0]).__name__ == "Recorded"]
     assert len(handlers) == len(nodes)  # one exit handler per node: status 2 shuts the launch down
     on_exit = handlers[0].args[0].kwargs["on_exit"]
@@ -232,7 +244,7 @@ def test_default_yaml_lists_every_node_parameter_with_its_default_and_a_descript
     """config/ptz_selfcal.yaml is the user's reference: every parameter a node declares is there (the
     tracker's state_dir only as a comment: `launch` fills it in) with the node's default, and each has
     a description and, for a number, a check that refuses absurd values."""
-    from ptz_selfcal.nodes import calibrator, frame_ingest, homography_tracker
+    from ptz_selfcal.nodes import calibrator, frame_ingest, homography_tracker, mosaic_node
     from ptz_selfcal.tools.launch import default_params_file
 
     path = default_params_file()
@@ -242,8 +254,9 @@ def test_default_yaml_lists_every_node_parameter_with_its_default_and_a_descript
         ("frame_ingest", frame_ingest.PARAMS),
         ("homography_tracker", homography_tracker.PARAMS),
         ("calibrator", calibrator.PARAMS),
+        ("mosaic", mosaic_node.PARAMS),
     ):
-        listed = data[key]["ros__parameters"]
+        listed = data[f"/**/{key}"]["ros__parameters"]
         for p in params:
             assert p.description.strip(), (key, p.name)
             if isinstance(p.default, int | float) and not isinstance(p.default, bool):

@@ -1,7 +1,7 @@
 """ROS 2 launch file of the ptz_selfcal node suite, for users with a full ROS install:
     ros2 launch ptz_selfcal ptz_selfcal.launch.py [namespace:=/cam1] [camera_name:=cam1]
         [params_file:=FILE] [remappings:="image_raw:=camera/image joint_states:=/head/joints"]
-        [persist:=false]
+        [persist:=false] [mosaic:=true]
 Here, without launch/launch_ros, `ptz-selfcal launch` does the same: both take their node list (names,
 namespace, parameters, remappings) from ptz_selfcal.tools.launch.plan_suite, so they start the same graph
 (tests/unit/test_launch_params.py checks this file's actions against it with stand-ins for launch).
@@ -24,10 +24,15 @@ from launch_ros.actions import Node
 from ptz_selfcal.tools.launch import (
     CONFIG_ERROR_STATUS,
     NODE_MODULES,
+    SUITE_NODES,
     load_params_file,
     plan_suite,
     state_root,
 )
+
+
+def _true(text):
+    return text.lower() in ("true", "1", "yes")
 
 
 def _on_exit(event, context):
@@ -46,7 +51,8 @@ def _nodes(context, *args, **kwargs):
         value("namespace") or None,
         value("remappings").split(),
         value("camera_name") or None,
-        state_root=state_root() if value("persist").lower() in ("true", "1", "yes") else None,
+        nodes=SUITE_NODES + (("mosaic",) if _true(value("mosaic")) else ()),
+        state_root=state_root() if _true(value("persist")) else None,
     )
     actions = []
     for planned in plan:
@@ -85,6 +91,9 @@ def generate_launch_description():
                 "persist",
                 default_value="true",
                 description="calibrator state in $ROS_HOME/ptz_selfcal/<camera_name> unless state_dir is set",
+            ),
+            DeclareLaunchArgument(
+                "mosaic", default_value="false", description="also start the live mosaic (selfcal/mosaic)"
             ),
             OpaqueFunction(function=_nodes),
         ]

@@ -51,7 +51,10 @@ NODE_MODULES = {
     "frame_ingest": "ptz_selfcal.nodes.frame_ingest",
     "homography_tracker": "ptz_selfcal.nodes.homography_tracker",
     "calibrator": "ptz_selfcal.nodes.calibrator",
+    "mosaic": "ptz_selfcal.nodes.mosaic_node",
 }
+# the suite a launch starts; the live mosaic (selfcal/mosaic) is optional, off by default
+SUITE_NODES = ("frame_ingest", "homography_tracker", "calibrator")
 CONFIG_ERROR_STATUS = 2  # nodes exit with this status on a configuration error
 PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 LEASE_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
@@ -186,7 +189,7 @@ def plan_suite(
     namespace: str | None = None,
     remaps: Sequence[str] = (),
     camera_name: str | None = None,
-    nodes: Sequence[str] = tuple(NODE_MODULES),
+    nodes: Sequence[str] = SUITE_NODES,
     modules: dict[str, str] | None = None,
     name_from_namespace: bool = True,
     state_root: str | None = None,
@@ -527,8 +530,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--nodes",
         nargs="+",
         choices=list(NODE_MODULES),
-        default=list(NODE_MODULES),
-        help="start only these nodes (default: all three)",
+        default=list(SUITE_NODES),
+        help="start only these nodes (default: the suite's three; mosaic is the optional live mosaic)",
+    )
+    parser.add_argument(
+        "--mosaic",
+        action="store_true",
+        help="also start the live mosaic node (selfcal/mosaic: CONVERGED frames on a spherical canvas)",
     )
     parser.add_argument("--stop-timeout", type=float, default=5.0, help="seconds to wait after SIGINT")
     parser.add_argument(
@@ -605,8 +613,9 @@ def run(args: argparse.Namespace) -> int:
         source = Path(args.params) if args.params else default_params_file()
         data = load_params_file(source, list(NODE_MODULES))
         root = None if args.no_persist else state_root()
+        nodes = list(args.nodes) + (["mosaic"] if args.mosaic and "mosaic" not in args.nodes else [])
         plan = plan_suite(
-            data, args.namespace, args.remap, args.camera_name, args.nodes, modules, state_root=root
+            data, args.namespace, args.remap, args.camera_name, nodes, modules, state_root=root
         )
         specs = [NodeSpec(n.name, n.module) for n in plan]
         remaps = [f"{src}:={dst}" for src, dst in plan[0].remappings] if plan else []
