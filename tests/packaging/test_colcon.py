@@ -71,7 +71,7 @@ def test_messages_import_from_install_space(colcon_install: Path) -> None:
 
 def test_install_space_has_node_executables_launch_and_config(colcon_install: Path) -> None:
     lib = colcon_install / "ptz_selfcal" / "lib" / "ptz_selfcal"
-    for exe in ("ptz-selfcal", "frame_ingest", "homography_tracker", "calibrator"):
+    for exe in ("ptz-selfcal", "frame_ingest", "homography_tracker", "calibrator", "mosaic"):
         assert (lib / exe).exists(), f"{exe} missing from {lib}"
     share = colcon_install / "ptz_selfcal" / "share" / "ptz_selfcal"
     assert (share / "package.xml").exists()
