@@ -614,9 +614,7 @@ def run(args: argparse.Namespace) -> int:
         data = load_params_file(source, list(NODE_MODULES))
         root = None if args.no_persist else state_root()
         nodes = list(args.nodes) + (["mosaic"] if args.mosaic and "mosaic" not in args.nodes else [])
-        plan = plan_suite(
-            data, args.namespace, args.remap, args.camera_name, nodes, modules, state_root=root
-        )
+        plan = plan_suite(data, args.namespace, args.remap, args.camera_name, nodes, modules, state_root=root)
         specs = [NodeSpec(n.name, n.module) for n in plan]
         remaps = [f"{src}:={dst}" for src, dst in plan[0].remappings] if plan else []
         namespace = plan[0].namespace if plan else None
