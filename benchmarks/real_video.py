@@ -87,10 +87,11 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--size", default="960x540")
     parser.add_argument("--work-dir", default="/tmp/real_video")
-    parser.add_argument("--quick", action="store_true", help="examplepano, seed 0, 60 frames of 640x360")
+    parser.add_argument("--quick", action="store_true", help="examplepano, seed 0, 150 frames of 640x360")
     args = parser.parse_args()
     if args.quick:
-        args.panoramas, args.seeds, args.frames, args.size = "examplepano", "0", 60, "640x360"
+        # 150 frames at 25 fps: the followed target's window (1.5 s to 4.5 s) fits in the sequence
+        args.panoramas, args.seeds, args.frames, args.size = "examplepano", "0", 150, "640x360"
     size = tuple(int(v) for v in args.size.split("x"))
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)
