@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import reliability_harness as rh
 
-from ptz_selfcal.status import CalibrationStatus
+from ptz_selfcal.status import CALIBRATED, CalibrationStatus
 
 ROS_DOMAIN_ID = 181
 CORE_FRAMES = 30_000
@@ -56,7 +56,9 @@ def test_graph_memory_flat_and_every_frame_calibrated(ros_env, start_process):
             # failed a 10 % bound once without any growth (5.0 -> 8.1 -> 6.0 ms in successive blocks).
             assert rss[-1] <= 1.1 * rss[1], (name, rss)
             print(f"  {name}: CPU ms/frame warm-up {max(cpu[1:3]):.2f}, end {min(cpu[-2:]):.2f}")
-        assert r["statuses"][CalibrationStatus.CONVERGED] > 0.8 * GRAPH_FRAMES
+        # calibrated: CONVERGED promises a 1-sigma of f below 0.2 %, which 160 px working images do not
+        # reach (the core soak above asserts CONVERGED and its accuracy at full resolution)
+        assert sum(r["statuses"][s] for s in CALIBRATED) > 0.8 * GRAPH_FRAMES
         for name, proc in procs.items():
             assert proc.alive(), f"{name} died:\n{proc.output()[-3000:]}"
     finally:

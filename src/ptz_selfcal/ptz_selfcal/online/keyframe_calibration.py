@@ -73,6 +73,7 @@ class KeyframeCalibration:
         self._needs_refinement = False
         self._next_solve = 0.0
         self._backlog: deque[PendingKeyframe] = deque()  # keyframes a spent budget left for later
+        self._awaiting_matches = False  # a restored calibration: no re-solve until match sets arrive
         self._solve_times: deque[float] = deque(maxlen=200)
         self._zoom_table_cache: tuple[tuple, ZoomTable | None] = ((), None)
 
@@ -134,6 +135,14 @@ class KeyframeCalibration:
             self._needs_refinement = True
         # unpaced (replays): no clock in what is solved, so the same inputs give the same calibration
         due = not work.paced or (time.monotonic() >= self._next_solve and remaining > 0.0)
+        if self._awaiting_matches and work.matches:
+            self._awaiting_matches = False
+            self._needs_refinement = True
+        if self._awaiting_matches:
+            # a restored calibration comes without its match sets (they are not saved): until new ones
+            # arrive a re-solve could only be LM on the homographies, which must not replace the
+            # adjustment it was made by; the refinement waits for them
+            self._needs_refinement = False
         if calibrator.calibrated and self._needs_refinement and not solved and due:
             solved = self._reoptimise(remaining if work.paced else None)
         if added:  # bounded memory: forget keyframes the calibrator dropped
@@ -346,6 +355,7 @@ class KeyframeCalibration:
         self.zoom_model.new_calibration()  # its calibration is gone: live samples become history
         self._zoom_changed = True
         self.calibrator = None
+        self._awaiting_matches = False
         self._backlog.clear()
         self.matches.clear()
         self.model_fit.forget()
@@ -386,6 +396,7 @@ class KeyframeCalibration:
         fixed_distortion = self.config.fixed_lens and self.config.estimate_distortion
         self.solver.shared_lam = saved.shared_lam if fixed_distortion else None
         self.solver.noise_estimate = saved.noise_estimate
+        self._awaiting_matches = saved.calibrator is not None and self.config.bundle_adjustment
         self.solver.distortion_adopted = saved.distortion_adopted
         self.solver.pp_varying_adopted = saved.pp_varying_adopted
         self.solver.forget_warm_start()

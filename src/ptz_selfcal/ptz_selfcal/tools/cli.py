@@ -16,7 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "play": ("ptz_selfcal.tools.play", "publish a bag's messages (in place of `ros2 bag play`)"),
     "record": ("ptz_selfcal.tools.record", "record topics to a new mcap bag (in place of `ros2 bag record`)"),
     "run": ("ptz_selfcal.tools.run", "replay a bag through the real nodes and record every output"),
-    "eval": ("ptz_selfcal.tools.evaluate", "run + compare with encoders and ground truth: report and plots"),
+    "eval": ("ptz_selfcal.tools.eval_command", "run + compare with encoders and ground truth: report, plots"),
     "synth": ("ptz_selfcal.tools.synth", "render a PTZ camera bag from an equirectangular panorama"),
     "mosaic": ("ptz_selfcal.tools.mosaic", "panoramic mosaic (PNG) of a bag through its calibration"),
     "export-calibration": (

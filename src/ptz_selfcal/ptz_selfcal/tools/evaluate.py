@@ -24,6 +24,7 @@ import re
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -470,7 +471,7 @@ def run_pipeline(in_bag: Path, out_bag: Path, params: str | None, quiet: bool, e
     return {"wall_s": wall, "throughput_fps": float(rates[-1]) if rates else None}
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, mosaic: Callable[..., dict] | None = None) -> int:
     in_bag = Path(args.in_bag)
     out_dir = Path(args.out_dir or f"eval_{in_bag.resolve().name}")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -511,10 +512,8 @@ def run(args: argparse.Namespace) -> int:
         report["performance"]["run_frames_per_wall_s"] = frames / run_info["wall_s"]
     plots = [] if args.no_plots else [str(p) for p in write_plots(series, out_dir)]
     report["plots"] = plots
-    if not args.no_plots:  # the mosaic, a picture of the run too (tools/mosaic.eval_mosaic)
-        from ptz_selfcal.tools.mosaic import eval_mosaic  # here: tools/mosaic imports this module
-
-        report["mosaic"] = eval_mosaic(data, output_bag, Path(source) if source else output_bag, out_dir)
+    if mosaic is not None and not args.no_plots:  # a picture of the run too (tools/eval_command.py)
+        report["mosaic"] = mosaic(data, output_bag, Path(source) if source else output_bag, out_dir)
     path = write_json(report, out_dir / "report.json")
     print(format_table(report))
     if report.get("figures"):
