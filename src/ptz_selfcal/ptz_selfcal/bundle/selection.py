@@ -1,5 +1,6 @@
-"""Lens-model selection between two keyframe bundle adjustments on the same observations (section 5,
-DESIGN.md section 5 item 8): radial distortion or none, a principal point constant or moving with zoom.
+"""Lens-model selection between two keyframe bundle adjustments on the same observations (sections 5
+and 7): radial distortion or none, a principal point constant or moving with zoom, chosen by the data
+rather than by a per-camera parameter (a default must suit lenses it has never seen).
 
 The Bayesian information criterion with the noise variance unknown: n ln(RSS / n) + k ln n for n
 image residuals and k unknowns (with eq. 27's prior: the image term of the MAP solution). Both
