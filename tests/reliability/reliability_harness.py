@@ -744,6 +744,9 @@ def graph_soak(feeder: Feeder, pids: dict[str, int], n: int, width: int, height:
     return {
         "frames": n,
         "wall_s": time.monotonic() - start,
+        # where frames went missing, for the failure message: their indices and the nodes' counters
+        "lost_frames": [j for j, s in enumerate(stamps) if s not in feeder.infos],
+        "counters": {name: dict(values) for name, values in feeder.diagnostics.items()},
         "calibrated": sum(1 for s in stamps if s in feeder.infos),
         "duplicates": sum(1 for s in stamps if len(feeder.infos.get(s, [])) > 1),
         "lost": lost,

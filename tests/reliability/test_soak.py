@@ -47,7 +47,10 @@ def test_graph_memory_flat_and_every_frame_calibrated(ros_env, start_process):
         for name in procs:
             print(f"  {name}: RSS per block {np.round(r['rss'][name], 1)}")
             print(f"  {name}: CPU ms/frame per block {np.round(r['cpu_ms_per_frame'][name], 2)}")
-        assert r["calibrated"] == GRAPH_FRAMES and r["duplicates"] == 0 and r["lost"] == 0
+        assert r["calibrated"] == GRAPH_FRAMES and r["duplicates"] == 0 and r["lost"] == 0, (
+            r["lost_frames"],
+            r["counters"],
+        )
         for name in procs:
             rss, cpu = r["rss"][name], r["cpu_ms_per_frame"][name]
             # blocks 1-2 (frames 500-1500) are the after-warm-up reference, the last block the end. CPU

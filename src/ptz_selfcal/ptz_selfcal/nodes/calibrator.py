@@ -86,10 +86,19 @@ class CalibratorNode(Node):
         if p["estimate_distortion"] and not config.fixed_lens:
             self._lens = SessionLensHook(config.nominal_focal)
             session.set_distortion(self._lens.distortion)
+        restored = False
         for line in session.restore():
             (self.get_logger().warning if line.startswith("WARNING") else self.get_logger().info)(line)
+            restored |= line.startswith("restored calibration state")
         if self._lens is not None:
             self._lens.restored(session)
+            if restored:  # the lens correction's own state is not saved: say what the frames get
+                self.get_logger().info(
+                    "restored lens: found without distortion, frames keep their homographies"
+                    if self._lens.pinhole
+                    else "restored lens: its correction starts anew, frames of the restored map get K "
+                    "from the zoom model (PREDICTED_FROM_ZOOM) until new keyframes are corrected"
+                )
 
         self._counts: Counter[str] = Counter()
         self._warnings = CountedWarnings(self, self._counts)
