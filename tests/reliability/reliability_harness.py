@@ -435,6 +435,11 @@ class LockStep:
     def error(self, sent: Sent) -> float:
         return focal_error(self.feeder.infos[sent.stamp_ns][0], sent.view)
 
+    def sigma(self, sent: Sent) -> float:
+        """The frame's published 1-sigma of f relative to f (inf when it publishes none)."""
+        frame = self.feeder.frames[sent.stamp_ns]
+        return frame.sigma_f / frame.fx if frame.sigma_f > 0 and frame.fx > 0 else math.inf
+
 
 def window_views(width: int, f: float, n: int = 16) -> list[View]:
     """A small back-and-forth around pan = tilt = 0 at focal length f (repeatable views)."""
@@ -905,6 +910,7 @@ def restart_scenario(feeder: Feeder, launch_output: Callable[[], str], victim: s
         "threshold": threshold,
         "before_max": max(ls.error(s) for s in before),
         "after_errors": [ls.error(s) for s in after],
+        "after_sigmas": [ls.sigma(s) for s in after],  # published 1-sigma of f, relative
         "before": float(np.median([ls.error(s) for s in before])),
         "after": float(np.median([ls.error(s) for s in after])),
         "recover_s": recover_s,

@@ -12,9 +12,12 @@ import numpy as np
 import pytest
 
 from ptz_selfcal.camera.distortion import (
+    PLUMB_BOB,
+    corner_radius,
     division_distort,
     division_lambda_for_corner_shift,
     max_distortion_difference,
+    radial_displacement,
 )
 from ptz_selfcal.camera.geometry import (
     apply_homography,
@@ -27,6 +30,7 @@ from ptz_selfcal.frontend.homography import estimate_homography
 from ptz_selfcal.lens.correction import LensCorrection, LensView
 from ptz_selfcal.lens.hook import SessionLensHook
 from ptz_selfcal.lens.interface import LensEstimate, LensModel
+from ptz_selfcal.online.frames import FrameOutput
 
 W, H = 1280, 720
 H_IMG = H
@@ -293,6 +297,35 @@ def test_a_calibrated_session_never_gets_a_raw_homography_the_correction_cannot_
     # before any calibration the raw homography still passes (the session initialises on it)
     out, state = hook.frame(H_raw, "TRACKING", 3, "ref", W, H_IMG, calibrated=False)
     assert np.allclose(out, H_raw) and state == "TRACKING" and hook.uncorrectable_frames == 1
+
+
+@pytest.mark.parametrize(
+    ("adopted", "k1", "pinhole"),
+    [
+        (False, 0.0, True),  # found without distortion
+        (None, 0.0, True),  # not decided and none published: calibrated on the raw chains
+        (None, -0.1, False),  # not decided, but calibrated on corrected coordinates
+        (True, -0.1, False),  # a real distortion: raw homographies would move f
+        (True, -0.0003, True),  # adopted, but moves the corner by less than the tracker's noise
+    ],
+)
+def test_a_restored_lens_keeps_raw_homographies_only_when_correcting_them_changes_nothing(
+    adopted: bool | None, k1: float, pinhole: bool
+) -> None:
+    session = _StubSession()
+    session.solver.distortion_adopted = adopted
+    session.solver.noise_estimate = 0.12
+    session.image_size = (W, H_IMG)
+    K = intrinsic_matrix(F_WIDE, *PP)
+    D = np.array([k1, 0.0, 0.0, 0.0, 0.0])
+    session.last_good = FrameOutput("CONVERGED", K, D, None, 1.0, 1.0, 1.0, 0.1, 0, 3, "calibration")
+    shift = radial_displacement(PLUMB_BOB, session.last_good.D, K, [corner_radius(K, W, H_IMG)])[0]
+    assert (abs(shift) < 0.12) == (abs(k1) < 0.01)  # the cases are what they say
+    hook = SessionLensHook(lambda width: F_WIDE, joint_bundle=False)
+    hook.restored(session)
+    assert hook.pinhole is pinhole
+    out, state = hook.frame(tracked_H(3, 0, lam_issue), "TRACKING", 3, "ref", W, H_IMG, calibrated=True)
+    assert (out is not None and state == "TRACKING") is pinhole
 
 
 def test_joint_hook_sends_raw_matches_and_takes_the_adjusted_centre_once_it_is_certain() -> None:

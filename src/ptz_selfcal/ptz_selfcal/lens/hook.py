@@ -7,15 +7,19 @@ from __future__ import annotations
 import contextlib
 from collections import deque
 from collections.abc import Callable, Hashable, Mapping, Sequence
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ptz_selfcal.camera.distortion import PLUMB_BOB, corner_radius, radial_displacement
 from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.lens.correction import LensCorrection
 from ptz_selfcal.lens.interface import LensEstimate, LensModel
 from ptz_selfcal.status import TrackingState
+
+if TYPE_CHECKING:
+    from ptz_selfcal.online.frames import FrameOutput
 
 Array = NDArray[np.float64]
 
@@ -52,6 +56,9 @@ class SessionSolver(Protocol):
     @property
     def distortion_adopted(self) -> bool | None: ...
 
+    @property
+    def noise_estimate(self) -> float | None: ...
+
     def set_lens_model(self, model: LensModel | None) -> None: ...
 
 
@@ -63,6 +70,12 @@ class LensSession(Protocol):
 
     @property
     def solver(self) -> SessionSolver: ...
+
+    @property
+    def last_good(self) -> FrameOutput | None: ...
+
+    @property
+    def image_size(self) -> tuple[int, int] | None: ...
 
     def add_keyframe_matches(
         self,
@@ -189,8 +202,10 @@ class SessionLensHook:
 
     def restored(self, session: LensSession) -> None:
         """A session restored from its saved state: the correction's own state is not saved, but a lens
-        the evidence had found without distortion needs none, so its frames go on calibrated."""
-        self.pinhole = session.solver.distortion_adopted is False
+        the evidence had found without distortion needs none, nor one whose distortion moves no point of
+        the image by the tracker's noise (the correction would change nothing measurable), so its frames
+        go on calibrated."""
+        self.pinhole = session.solver.distortion_adopted is False or _below_noise(session)
 
     def matches(self, keyframe_id: int, other_keyframe_id: int, pts: Array, other_pts: Array) -> None:
         m = (int(keyframe_id), int(other_keyframe_id), pts, other_pts)
@@ -320,3 +335,12 @@ class SessionLensHook:
 
     def distortion(self, K: Array) -> Array:
         return np.zeros(5) if self.lens is None else self.lens.plumb_bob(K)
+
+
+def _below_noise(session: LensSession) -> bool:
+    """The last published distortion moves the image corner by less than the solver's measured noise."""
+    last, noise, size = session.last_good, session.solver.noise_estimate, session.image_size
+    if last is None or noise is None or size is None:
+        return False
+    radius = corner_radius(last.K, *size)
+    return bool(abs(radial_displacement(PLUMB_BOB, last.D, last.K, [radius])[0]) < noise)
