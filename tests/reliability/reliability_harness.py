@@ -436,9 +436,9 @@ class LockStep:
         return focal_error(self.feeder.infos[sent.stamp_ns][0], sent.view)
 
     def sigma(self, sent: Sent) -> float:
-        """The frame's published 1-sigma of f relative to f (inf when it publishes none)."""
+        """The frame's published 1-sigma of f relative to f (0 when it publishes none: no promise)."""
         frame = self.feeder.frames[sent.stamp_ns]
-        return frame.sigma_f / frame.fx if frame.sigma_f > 0 and frame.fx > 0 else math.inf
+        return frame.sigma_f / frame.fx if frame.sigma_f > 0 and frame.fx > 0 else 0.0
 
 
 def window_views(width: int, f: float, n: int = 16) -> list[View]:
