@@ -5,8 +5,10 @@ use it and the one lock between them: the frame thread (the rclpy executor) call
 `add_keyframe_matches`; the worker takes the collected work under the lock, solves WITHOUT it
 (`calibration.apply` touches only the solving half), and hands the result back under the lock. So a
 frame waits at most for another frame or a hand-over, never for a solve, and a result of a reference
-that changed meanwhile is dropped by the session (its epoch is old). No rclpy here: tests drive it
-with plain threads.
+that changed meanwhile is dropped by the session (its epoch is old). Requests that change the solving
+half (set_camera_info's zoom model sample, a reset's forgetting) are queued for the worker, which runs
+them before its next solve; a reset's new epoch and its deleted files are immediate. No rclpy here:
+tests drive it with plain threads.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import time
 import traceback
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -102,6 +105,57 @@ class SessionRunner:
         self._inline = False
         self._last_save = time.monotonic()
         self._thread = threading.Thread(target=self._loop, name="calibrator_solve", daemon=True)
+        self._commands: list[Callable[[], None]] = []  # for the solving half, under the lock
+        self._files_lock = threading.Lock()  # the state files: a save's write against a reset's delete
+        self._generation = 0  # resets so far: a save taken before one is not written
+
+    # ---- requests (the frame thread, services) --------------------------------------------------
+    def set_camera_info(self, K: Array, D: Array, size: tuple[int, int]) -> tuple[bool, str]:
+        """A measured K (set_camera_info) at the current zoom, the latest frame's: the prior, and a zoom
+        model sample there; (False, why) when K cannot be a calibration of these images."""
+        K = np.asarray(K, dtype=float).reshape(3, 3)
+        D = np.resize(np.nan_to_num(np.asarray(D, dtype=float).ravel()), 5) if np.size(D) else np.zeros(5)
+        with self.lock:
+            problem = self.session.camera_info_problem(K, size)
+            if problem:
+                return False, problem
+            K = K / K[2, 2]
+            zoom = self.session.last_zoom
+            self.session.set_prior(K, size)
+            self._commands.append(lambda: self.session.calibration.anchor(zoom, K, D, size))
+        self.wake()
+        f = f"f = {K[1, 1]:.1f} px, pp = ({K[0, 2]:.1f}, {K[1, 2]:.1f})"
+        if np.isfinite(zoom):
+            return True, f"K ({f}) anchors the zoom model at zoom {zoom:g} and is the prior"
+        return (
+            True,
+            f"K ({f}) is the prior; no zoom reading (no frame yet, or no zoom encoder): no zoom model sample",
+        )
+
+    def reset(self, why: str) -> list[Path]:
+        """Start fresh: a new epoch without calibration or zoom model, and the saved state deleted;
+        returns the files removed."""
+        with self.lock:
+            self.session.reset(why)
+            self._forget()
+        removed = self._remove_files()
+        self.wake()
+        return removed
+
+    def _forget(self) -> None:
+        """A reset's solving half's part, queued (under the lock); saves taken before it are void."""
+        if self.session.take_forget():
+            self._generation += 1
+            self._commands.append(self.session.reset_solving_half)
+
+    def _remove_files(self) -> list[Path]:
+        with self._files_lock:
+            return self.session.remove_state_files()
+
+    def _take_commands(self) -> list[Callable[[], None]]:
+        """The queued requests (under the lock), for the solving half's owner thread to run."""
+        commands, self._commands = self._commands, []
+        return commands
 
     # ---- the frame thread ------------------------------------------------------------------------
     def process(self, frame: FrameInput) -> tuple[FrameOutput, bool]:
@@ -109,7 +163,15 @@ class SessionRunner:
         with self.lock:
             before = self.session.invalid_homographies
             out = self.session.process(frame)
-            return out, self.session.invalid_homographies > before
+            invalid = self.session.invalid_homographies > before
+            stale = self.session.take_stale_state()
+            if stale:
+                self._forget()
+        if stale:  # a swapped camera or lens: its state is not this camera's
+            removed = self._remove_files()
+            self.log("warning", stale + (f" (removed {', '.join(map(str, removed))})" if removed else ""))
+            self.wake()
+        return out, invalid
 
     def nominal_output(self, frame: FrameInput, status: str) -> FrameOutput:
         with self.lock:
@@ -128,7 +190,7 @@ class SessionRunner:
     def pending(self) -> int:
         """Work not done yet, the step in progress included (0: the worker is idle)."""
         with self.lock:
-            return self.session.pending_work + int(self._busy)
+            return self.session.pending_work + len(self._commands) + int(self._busy)
 
     def read(self, fn: Callable[[CalibratorSession], object]) -> object:
         """fn(session) under the lock, for diagnostics."""
@@ -154,9 +216,12 @@ class SessionRunner:
         """One worker step: take the work, solve outside the lock, hand the result back."""
         self._busy = True
         try:
-            with self.lock:
+            with self.lock:  # work and requests together: a reset's forgetting precedes its epoch's work
                 work = self.session.take_work(paced)
+                commands = self._take_commands()
                 before = self.session.state
+            for command in commands:
+                command()
             result = self._solve(work, self.config.budget_s)
             with self.lock:
                 self.session.accept(result)
@@ -199,8 +264,19 @@ class SessionRunner:
         if self.session.state_dir is None:
             return []
         with self.lock:
-            data = self.session.to_dict()
-        files = self.session.write_state(data)
+            commands = self._take_commands()
+        for command in commands:
+            command()
+        with self.lock:
+            if self._commands:  # a reset came meanwhile: the solving half still holds what it drops
+                return []
+            if self.session.fresh:
+                return []  # reset, nothing learned since: its deleted files are the state
+            data, generation = self.session.to_dict(), self._generation
+        with self._files_lock:
+            if generation != self._generation:
+                return []  # taken before a reset: not written over its deleted files
+            files = self.session.write_state(data)
         with self.lock:
             self.session.mark_saved()
         self._last_save = time.monotonic()

@@ -54,8 +54,15 @@ from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
 from ptz_selfcal.online.selection import CalibrationFrameSelector
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult
 from ptz_selfcal.persist.atomic_file import remove_stale_temporaries
+from ptz_selfcal.persist.camera_info_file import intrinsics_problem
 from ptz_selfcal.persist.session_state import state_from_dict, write_state
-from ptz_selfcal.persist.state_files import STATE_FILE, ZOOM_MODEL_FILE, StateFileError, load_yaml_file
+from ptz_selfcal.persist.state_files import (
+    STATE_FILE,
+    ZOOM_MODEL_FILE,
+    StateFileError,
+    load_yaml_file,
+    remove_state_files,
+)
 from ptz_selfcal.status import HOMOGRAPHY_STATES, CalibrationStatus, TrackingState
 from ptz_selfcal.zoom import ZoomModel, ZoomModelError, ZoomRate
 
@@ -72,7 +79,16 @@ _FRAME_COUNTERS = (
     *("frames", "keyframe_matches", "invalid_homographies", "frames_without_homography"),
     *("reference_changes", "state_saves", "zoom_gate_rejections", "fast_motion_keyframes"),
     "unconfirmed_keyframes",
+    "prior_size_mismatches",
+    "resets",
 )
+
+# A measured K (set_camera_info: a checkerboard calibration) as a zoom model sample: its relative
+# 1-sigma of f, far tighter than a self-calibrated keyframe's, so that it anchors the model at its zoom.
+MEASURED_SIGMA_F = 1e-3
+
+# A K given for one image size (camera_info_url, set_camera_info): (K, (width, height)).
+SizedK = tuple[Array, tuple[int, int]]
 
 
 class Phase(enum.Enum):
@@ -86,13 +102,61 @@ class Phase(enum.Enum):
     CALIBRATED = "calibrated"
 
 
+class PriorCalibration(KeyframeCalibration):
+    """The solving half with a measured prior: a K given by camera_info_url or set_camera_info is the
+    prior of a new calibration where the zoom model gives none, in place of the nominal field of view;
+    set_camera_info's K is also a zoom model sample. Its owner (the worker) calls these methods."""
+
+    prior: SizedK | None = None
+
+    def new_calibrator(self) -> IncrementalCalibrator:
+        calibrator = super().new_calibrator()
+        prior = self.prior
+        if prior is not None and prior[1] == self.image_size:
+            nominal = new_calibrator(self.config, prior[1], None, math.nan).prior_K
+            if np.array_equal(calibrator.prior_K, nominal):  # not the zoom model's
+                calibrator.prior_K = prior[0].copy()
+        return calibrator
+
+    def anchor(self, zoom: float, K: Array, D: Array, size: tuple[int, int]) -> None:
+        """A measured K at this zoom (NaN: no zoom reading): the prior, and a zoom model sample."""
+        self.prior = (K.copy(), size)
+        calibrator = self.calibrator
+        if calibrator is not None and calibrator.last_solve is None and calibrator.image_size == size:
+            calibrator.prior_K = K.copy()  # not calibrated yet: it starts from the measured K
+            self._published = False  # the frame path gets the new prior with the next result
+        if not math.isfinite(zoom):
+            return
+        k1, k2 = float(D[0]), float(D[1])
+        weight = 1.0 / MEASURED_SIGMA_F**2
+        if not self.zoom_model.add_sample(zoom, K[1, 1], K[0, 2], K[1, 2], k1, k2, weight):
+            self._warn(f"set_camera_info: K not usable as a zoom model sample at zoom {zoom:g}")
+            return
+        self.counters["camera_info_anchors"] = self.counters.get("camera_info_anchors", 0) + 1
+        try:
+            self.zoom_model.predict(zoom)
+            self.zoom_ready = True
+        except (ZoomModelError, ValueError, np.linalg.LinAlgError) as exc:
+            self._warn(f"zoom model not usable yet: {exc}")
+        self._zoom_changed = True
+        self.dirty = True
+
+    def forget(self, prior: SizedK | None) -> None:
+        """A reset: no calibration and no zoom model; `prior` is the prior again (camera_info_url's)."""
+        self.reset()
+        self.zoom_model = ZoomModel()
+        self.zoom_ready = False
+        self.prior = prior
+        self.dirty = False  # nothing to save until something is learned again
+
+
 class CalibratorSession:
     """One camera's self-calibration over a run (see the module docstring)."""
 
     def __init__(self, config: SessionConfig | None = None, state_dir: str | os.PathLike[str] | None = None):
         self.config = config or SessionConfig()
         self.state_dir = Path(state_dir) if state_dir else None
-        self.calibration = KeyframeCalibration(self.config)  # the solving half (owned by its caller)
+        self.calibration = PriorCalibration(self.config)  # the solving half (owned by its caller)
         self._counters: dict[str, int] = dict.fromkeys(_FRAME_COUNTERS, 0)
         self.status_counts: dict[str, int] = dict.fromkeys(CalibrationStatus, 0)
         self._result: WorkResult = self.calibration.result()
@@ -123,6 +187,15 @@ class CalibratorSession:
         )
         self._prior: tuple[tuple, IncrementalCalibrator] | None = None
         self._last_proposal = -math.inf  # stamp of the last ordinary frame proposed
+        self._given_prior: SizedK | None = None  # camera_info_url's or set_camera_info's K
+        self._startup_prior: SizedK | None = None  # camera_info_url's: the prior again after a reset
+        self._restored_size: tuple[int, int] | None = None  # a saved state's images, until a frame comes
+        self._stale_state: str | None = None  # why the saved state did not fit the images
+        self._forget_due = False  # a reset whose solving half's part is still to be done
+        self._fresh = (
+            False  # reset, and no reference since: nothing to save (its deleted files are the state)
+        )
+        self.last_zoom = math.nan  # the latest frame's zoom encoder reading
 
     # ---- the frame path --------------------------------------------------------------------------
     def process(self, frame: FrameInput) -> FrameOutput:
@@ -130,11 +203,21 @@ class CalibratorSession:
         start = time.perf_counter()
         self._counters["frames"] += 1
         self._zoom_rate = self._zoom_rates.update(float(frame.stamp), float(frame.zoom))
+        self.last_zoom = float(frame.zoom)
         size = (int(frame.width), int(frame.height))
         if frame.width > 0 and frame.height > 0 and self.image_size != size:
-            if self.image_size is not None:
+            if self._restored_size is not None:  # another camera or lens than the saved state's
+                self._stale_state = (
+                    f"the saved calibration state is of {self._restored_size[0]}x{self._restored_size[1]} "
+                    f"images, these are {size[0]}x{size[1]} (a swapped camera or lens?): starting fresh"
+                )
+                self.reset(self._stale_state)
+            elif self.image_size is not None:
                 self._new_reference(f"image size changed from {self.image_size} to {size}")
             self.image_size = size
+            self._check_prior_size()
+        if frame.width > 0 and frame.height > 0:
+            self._restored_size = None
         H = None
         if frame.tracking_state in HOMOGRAPHY_STATES:
             H = usable_homography(frame.H, frame.width, frame.height, self.config.max_focal_ratio)
@@ -164,6 +247,7 @@ class CalibratorSession:
             if self.phase is Phase.NO_REFERENCE:
                 self.phase = Phase.REFERENCED
             self._frame_dirty = True
+            self._fresh = False
         kid = int(frame.keyframe_id)
         fast = self._motion.fast(self.reference_id, frame.stamp, H, self.image_size)
         snap = self._snapshot
@@ -293,7 +377,28 @@ class CalibratorSession:
 
     def _prior_calibrator(self) -> IncrementalCalibrator:
         assert self.image_size is not None
-        return new_calibrator(self.config, self.image_size, self._zoom, math.nan)
+        calibrator = new_calibrator(self.config, self.image_size, self._zoom, math.nan)
+        given = self._given_K()
+        if given is not None:
+            calibrator.prior_K = given
+        return calibrator
+
+    def _given_K(self) -> Array | None:
+        """The given prior K (camera_info_url, set_camera_info) when it is of these images."""
+        given = self._given_prior
+        if given is None or given[1] != self.image_size:
+            return None
+        return given[0].copy()
+
+    def _check_prior_size(self) -> None:
+        given = self._given_prior
+        if given is not None and given[1] != self.image_size:
+            self._counters["prior_size_mismatches"] += 1
+            self._warn(
+                f"the given prior K is of {given[1][0]}x{given[1][1]} images, these are "
+                f"{self.image_size[0]}x{self.image_size[1]}: ignored, the nominal prior instead"
+            )
+            self._given_prior = None
 
     def _without_homography(self, frame: FrameInput) -> FrameOutput:
         predicted = self._predict_from_zoom(frame, _S.PREDICTED_FROM_ZOOM)
@@ -307,7 +412,12 @@ class CalibratorSession:
         """The nominal calibration of a frame: what the node publishes when nothing else is known."""
         size = self.image_size or (max(frame.width, 1), max(frame.height, 1))
         count = self._snapshot.keyframe_count if self._snapshot else 0
-        return nominal_output(self.config, size, frame, status, count)
+        out = nominal_output(self.config, size, frame, status, count)
+        given = self._given_K()
+        if given is not None:
+            out.K = given
+            out.sigma_f = self.config.prior_sigma_f_fraction * float(given[1, 1])
+        return out
 
     def _predict_from_zoom(self, frame: FrameInput, status: str) -> FrameOutput | None:
         count = self._snapshot.keyframe_count if self._snapshot else 0
@@ -393,6 +503,8 @@ class CalibratorSession:
     def step(self, max_seconds: float, paced: bool = True) -> bool:
         """Run the solving half inline on what was collected; True if it solved (paced: as take_work;
         False: the schedule of `ptz-selfcal run --deterministic`, no clock in what is solved)."""
+        if self.take_forget():
+            self.reset_solving_half()
         result = self.calibration.apply(self.take_work(paced), max_seconds)
         self.accept(result)
         return result.solved
@@ -415,6 +527,56 @@ class CalibratorSession:
         self._tracked_against = None
         self._pending.clear()
         self._selector.forget()
+
+    # ---- a given prior, a reset ------------------------------------------------------------------
+    def seed_prior(self, K: Array, size: tuple[int, int]) -> None:
+        """camera_info_url's K as the prior of both halves, before any frame (and again after a reset)."""
+        self._startup_prior = (np.asarray(K, dtype=float).copy(), (int(size[0]), int(size[1])))
+        self.set_prior(*self._startup_prior)
+        self.calibration.prior = self._startup_prior
+
+    def camera_info_problem(self, K: Array, size: tuple[int, int]) -> str | None:
+        """Why K of images `size` cannot be this camera's calibration (set_camera_info), or None."""
+        return intrinsics_problem(K, size, self.image_size)
+
+    def set_prior(self, K: Array, size: tuple[int, int]) -> None:
+        """The frame path's prior from now on (the solving half's: PriorCalibration.anchor)."""
+        K = np.asarray(K, dtype=float)
+        self._given_prior = (K / K[2, 2], (int(size[0]), int(size[1])))
+        self._prior = None
+        if self.image_size is not None:
+            self._check_prior_size()
+
+    def reset(self, why: str) -> None:
+        """Start fresh, the frame path's part: a new epoch, no calibration, no zoom model, the startup
+        prior; the solving half's part is `reset_solving_half`, on its owner's thread."""
+        self._counters["resets"] += 1
+        self._new_reference(why)
+        self._zoom = None
+        self.last_good = None
+        self._given_prior = self._startup_prior
+        self._prior = None
+        self._restored_size = None
+        self._frame_dirty = False
+        self._forget_due = True
+        self._fresh = True
+
+    def take_forget(self) -> bool:
+        """Whether a reset's solving half's part is due (once): then its owner calls reset_solving_half."""
+        due, self._forget_due = self._forget_due, False
+        return due
+
+    def reset_solving_half(self) -> None:
+        self.calibration.forget(self._startup_prior)
+
+    def take_stale_state(self) -> str | None:
+        """Why a saved state was dropped for not fitting the images (once), else None."""
+        stale, self._stale_state = self._stale_state, None
+        return stale
+
+    def remove_state_files(self) -> list[Path]:
+        """Delete the saved state in state_dir (a reset); the files removed."""
+        return [] if self.state_dir is None else remove_state_files(self.state_dir)
 
     # ---- persistence -----------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -440,7 +602,7 @@ class CalibratorSession:
 
     def save(self) -> list[str]:
         """Save the state and the zoom model atomically into state_dir; returns the files written."""
-        if self.state_dir is None:
+        if self.state_dir is None or self._fresh:
             return []
         written = self.write_state(self.to_dict())
         self.mark_saved()
@@ -457,7 +619,12 @@ class CalibratorSession:
 
     @property
     def dirty(self) -> bool:
-        return self._frame_dirty or self.calibration.dirty
+        return not self._fresh and (self._frame_dirty or self.calibration.dirty)
+
+    @property
+    def fresh(self) -> bool:
+        """Reset, and no reference since: nothing to save."""
+        return self._fresh
 
     def restore(self) -> list[str]:
         """Load the state and the zoom model from state_dir; returns log lines ("WARNING: ..." first).
@@ -473,6 +640,7 @@ class CalibratorSession:
             data = load_yaml_file(path)
             if data is not None:
                 self.load_dict(data)
+                self._restored_size = self.image_size
                 state = c.calibrator.state.value if c.calibrator else "none"
                 messages.append(
                     f"restored calibration state from {path}: {state}, "

@@ -34,3 +34,17 @@ def load_yaml_file(path: str | os.PathLike[str]) -> dict | None:
     if not isinstance(data, dict):
         raise StateFileError(f"{path}: not a YAML mapping")
     return data
+
+
+def remove_state_files(state_dir: str | os.PathLike[str]) -> list[Path]:
+    """Delete the calibrator's saved state (calibration state and zoom model) in state_dir: a reset.
+    Returns the files removed (none when there was no saved state)."""
+    removed = []
+    for name in (STATE_FILE, ZOOM_MODEL_FILE):
+        path = Path(state_dir) / name
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            continue
+        removed.append(path)
+    return removed

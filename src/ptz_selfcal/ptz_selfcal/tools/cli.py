@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "ptz_selfcal.tools.export_calibration",
         "write camera_calibration YAML per zoom setting from a saved zoom model",
     ),
+    "reset": ("ptz_selfcal.tools.reset", "drop a camera's calibration and saved state: start afresh"),
 }
 
 
