@@ -192,9 +192,7 @@ class CalibratorSession:
         self._restored_size: tuple[int, int] | None = None  # a saved state's images, until a frame comes
         self._stale_state: str | None = None  # why the saved state did not fit the images
         self._forget_due = False  # a reset whose solving half's part is still to be done
-        self._fresh = (
-            False  # reset, and no reference since: nothing to save (its deleted files are the state)
-        )
+        self._fresh = False  # reset, and no reference since: nothing to save (see `fresh`)
         self.last_zoom = math.nan  # the latest frame's zoom encoder reading
 
     # ---- the frame path --------------------------------------------------------------------------
@@ -623,7 +621,7 @@ class CalibratorSession:
 
     @property
     def fresh(self) -> bool:
-        """Reset, and no reference since: nothing to save."""
+        """Reset, and no reference since: nothing to save (the deleted files are the state)."""
         return self._fresh
 
     def restore(self) -> list[str]:
