@@ -43,7 +43,10 @@ def ros_env(
 ) -> dict[str, str]:
     """LOCALHOST discovery and the test module's ROS_DOMAIN_ID, for this process and its children; a
     ROS_HOME of the test's own (`launch` keeps a camera's state there by default: no test reads another
-    test's, or the user's ~/.ros)."""
+    test's, or the user's ~/.ros); the shipped Fast DDS profile, which every node gets from launch and
+    run (Fast DDS reads it when a process's first participant starts)."""
+    from ptz_selfcal.tools.launch import PROFILE_VARIABLES, default_profile_file
+
     domain = getattr(request.module, "ROS_DOMAIN_ID", None)
     if domain is None:
         pytest.fail("a test using ros_env must set a module-level ROS_DOMAIN_ID")
@@ -54,6 +57,7 @@ def ros_env(
         "PYTHONUNBUFFERED": "1",
         "RCUTILS_COLORIZED_OUTPUT": "0",
         "ROS_HOME": str(tmp_path_factory.mktemp("ros_home")),
+        PROFILE_VARIABLES[0]: str(default_profile_file()),
     }
     for key, value in values.items():
         monkeypatch.setenv(key, value)

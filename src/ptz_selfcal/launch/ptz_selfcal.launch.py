@@ -9,7 +9,9 @@ namespace, parameters, remappings) from ptz_selfcal.tools.launch.plan_suite, so 
 Each node is the package's executable of the same name (setup.py installs them into lib/ptz_selfcal).
 The parameters go to each node as the dictionary plan_suite resolved for its fully qualified name (no
 rewritten copy of the parameter file). Nodes that die are respawned, except after a configuration error
-(exit status 2), which ends the launch: restarting cannot help.
+(exit status 2), which ends the launch: restarting cannot help. The nodes load the package's Fast DDS
+profile (config/fastdds.xml: shared memory for raw images, a 2 s participant lease), as with
+`ptz-selfcal launch`, unless the environment names a profile file of its own.
 """
 
 import os
@@ -25,6 +27,7 @@ from ptz_selfcal.tools.launch import (
     CONFIG_ERROR_STATUS,
     NODE_MODULES,
     SUITE_NODES,
+    dds_profile_environment,
     load_params_file,
     plan_suite,
     state_root,
@@ -54,6 +57,7 @@ def _nodes(context, *args, **kwargs):
         nodes=SUITE_NODES + (("mosaic",) if _true(value("mosaic")) else ()),
         state_root=state_root() if _true(value("persist")) else None,
     )
+    profile = dds_profile_environment()  # the shipped file as it is: nothing is written here
     actions = []
     for planned in plan:
         node = Node(
@@ -66,6 +70,7 @@ def _nodes(context, *args, **kwargs):
             output="screen",
             respawn=True,
             respawn_delay=1.0,
+            additional_env=profile,
         )
         actions += [node, RegisterEventHandler(OnProcessExit(target_action=node, on_exit=_on_exit))]
     return actions

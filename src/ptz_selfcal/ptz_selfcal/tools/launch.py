@@ -9,11 +9,15 @@ Ctrl-C/SIGTERM stops every child cleanly: SIGINT, wait, then SIGTERM and SIGKILL
 supervisor exits 0. Children get SIGTERM from the kernel if
 the supervisor itself is killed (PR_SET_PDEATHSIG), so no orphan survives it.
 
-A node killed outright (kill -9, a crash) cannot say goodbye: its DDS endpoints stay matched until its
-participant's lease expires (Fast DDS: 20 s), and frames published meanwhile go to the dead reader while
-the other nodes' wait-for-subscriber checks count it as there. With Fast DDS the nodes therefore get a
-participant lease of --dds-lease seconds (default 2) through a default XML profile, unless the
-environment already names a Fast DDS profile file.
+With Fast DDS the nodes load the package's profile, config/fastdds.xml (dds_profile_environment; run,
+the ROS launch file and the tests use the same): a shared-memory segment large enough for raw images
+(the middleware's default one is smaller than one 1280x720 bgr8 image, whose fragments then overrun it
+and wait for the reliable protocol's repair) and a short participant lease. A node killed outright
+(kill -9, a crash) cannot say goodbye: its DDS endpoints stay matched until its participant's lease
+expires (Fast DDS: 20 s), and frames published meanwhile go to the dead reader while the other nodes'
+wait-for-subscriber checks count it as there; the profile's lease is 2 s (--dds-lease: a copy with
+another). A profile file the environment names already is used instead (the user's configuration
+wins), and launch says that the project's transport settings are then the user's to carry over.
 
 The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
 /ns/name, /**/name, /**) to {ros__parameters: {...}}. What each node gets (name, namespace, parameters,
@@ -57,36 +61,33 @@ NODE_MODULES = {
 SUITE_NODES = ("frame_ingest", "homography_tracker", "calibrator")
 CONFIG_ERROR_STATUS = 2  # nodes exit with this status on a configuration error
 PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
-LEASE_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <participant profile_name="ptz_selfcal_launch" is_default_profile="true">
-    <rtps>
-      <builtin>
-        <discovery_config>
-          <leaseDuration><sec>{sec}</sec><nanosec>{nanosec}</nanosec></leaseDuration>
-          <leaseAnnouncement><sec>{announce_sec}</sec><nanosec>{announce_nanosec}</nanosec></leaseAnnouncement>
-        </discovery_config>
-      </builtin>
-    </rtps>
-  </participant>
-</profiles>
-"""
+PROFILE_FILE = "fastdds.xml"  # in config/, beside the parameter file
 
 
-def default_params_file() -> Path:
-    """config/ptz_selfcal.yaml: from the package's share directory in the ament index (a colcon or other
-    ament install, wherever its prefix is), else from the source tree (a development checkout), else
-    from this Python's prefix (a pip install puts the share files there)."""
-    source = Path(__file__).resolve().parents[2] / "config" / "ptz_selfcal.yaml"
-    candidates = [source, Path(sys.prefix) / "share" / "ptz_selfcal" / "config" / "ptz_selfcal.yaml"]
+def shipped_config(name: str) -> Path:
+    """config/<name>: from the package's share directory in the ament index (a colcon or other ament
+    install, wherever its prefix is), else from the source tree (a development checkout), else from this
+    Python's prefix (a pip install puts the share files there)."""
+    source = Path(__file__).resolve().parents[2] / "config" / name
+    candidates = [source, Path(sys.prefix) / "share" / "ptz_selfcal" / "config" / name]
     try:
         from ament_index_python.packages import get_package_share_directory
 
         share = Path(get_package_share_directory("ptz_selfcal"))
-        candidates.insert(0, share / "config" / "ptz_selfcal.yaml")
+        candidates.insert(0, share / "config" / name)
     except (ImportError, LookupError, OSError):  # not installed with ament, or no AMENT_PREFIX_PATH
         pass
     return next((path for path in candidates if path.exists()), source)
+
+
+def default_params_file() -> Path:
+    """config/ptz_selfcal.yaml, the shipped parameter file (shipped_config)."""
+    return shipped_config("ptz_selfcal.yaml")
+
+
+def default_profile_file() -> Path:
+    """config/fastdds.xml, the shipped Fast DDS profile (shipped_config)."""
+    return shipped_config(PROFILE_FILE)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -549,10 +550,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--dds-lease",
         type=float,
-        default=2.0,
         metavar="SECONDS",
         help="Fast DDS participant lease of the nodes: a killed node's endpoints leave the graph after this "
-        "long (middleware default 20 s); 0 keeps the middleware's or your profile's setting (default 2)",
+        "long; 0 keeps the middleware's (20 s) (default: config/fastdds.xml's, 2 s)",
     )
     # Tests (and experiments) may replace a node's module: --node-module calibrator=my_package.my_node
     parser.add_argument(
@@ -560,27 +560,62 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def lease_environment(lease: float, directory: str, environ: dict[str, str] | None = None) -> dict[str, str]:
-    """Environment variables for the nodes that give their DDS participants a lease of `lease` seconds
-    (announced every lease / 4), so that a killed node's endpoints leave the graph that soon. Empty when
-    lease is 0, when the middleware is not Fast DDS or when the environment names a profile file already
-    (the user's configuration wins)."""
+def profile_named(environ: dict[str, str] | None = None) -> str | None:
+    """The Fast DDS profile file the environment names, if any."""
+    environ = os.environ if environ is None else environ
+    return next((environ[v] for v in PROFILE_VARIABLES if environ.get(v)), None)
+
+
+def dds_profile_environment(
+    directory: str | None = None, lease: float | None = None, environ: dict[str, str] | None = None
+) -> dict[str, str]:
+    """Environment variables that give a process's Fast DDS participants the shipped profile
+    (config/fastdds.xml); with `lease` (seconds, announced every lease / 4; 0: the middleware's) a copy
+    of it with that participant lease, written into `directory`. Empty when the middleware is not Fast
+    DDS or when the environment names a profile file other than the shipped one (the user's
+    configuration wins)."""
     environ = os.environ if environ is None else environ
     rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-    if lease <= 0 or not rmw.startswith("rmw_fastrtps") or any(environ.get(v) for v in PROFILE_VARIABLES):
+    shipped = default_profile_file()
+    named = profile_named(environ)
+    if not rmw.startswith("rmw_fastrtps") or (named and Path(named).resolve() != shipped.resolve()):
         return {}
-
-    def split(seconds: float) -> dict[str, int]:
-        ns = round(seconds * 1e9)
-        return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
-
-    announce = split(lease / 4)
-    text = LEASE_PROFILE.format(
-        **split(lease), announce_sec=announce["sec"], announce_nanosec=announce["nanosec"]
-    )
-    path = Path(directory) / "fastdds_lease.xml"
-    path.write_text(text)
+    if lease is None:
+        return {PROFILE_VARIABLES[0]: str(shipped)}
+    if directory is None:
+        raise ValueError("a profile with another lease needs a directory to be written into")
+    path = Path(directory) / f"fastdds_lease_{lease:g}.xml"
+    path.write_text(profile_with_lease(shipped.read_text(), lease))
     return {PROFILE_VARIABLES[0]: str(path)}
+
+
+def profile_with_lease(text: str, lease: float) -> str:
+    """A Fast DDS profile's text with its default participant's lease set to `lease` seconds (announced
+    every lease / 4), or with no lease of its own when lease is 0 (the middleware's default)."""
+    import xml.etree.ElementTree as ET
+
+    namespace = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
+    ET.register_namespace("", namespace)  # Fast DDS's parser reads plain tag names, no prefixes
+    root = ET.fromstring(text)
+
+    def child(parent: ET.Element, tag: str) -> ET.Element:
+        found = parent.find(f"{{{namespace}}}{tag}")
+        return found if found is not None else ET.SubElement(parent, f"{{{namespace}}}{tag}")
+
+    participant = next(
+        p for p in root.iter(f"{{{namespace}}}participant") if p.get("is_default_profile") == "true"
+    )
+    config = child(child(child(participant, "rtps"), "builtin"), "discovery_config")
+    for tag, seconds in (("leaseDuration", lease), ("leaseAnnouncement", lease / 4)):
+        old = config.find(f"{{{namespace}}}{tag}")
+        if old is not None:
+            config.remove(old)
+        if lease > 0:
+            ns = round(seconds * 1e9)
+            node = ET.SubElement(config, f"{{{namespace}}}{tag}")
+            ET.SubElement(node, f"{{{namespace}}}sec").text = str(ns // 1_000_000_000)
+            ET.SubElement(node, f"{{{namespace}}}nanosec").text = str(ns % 1_000_000_000)
+    return '<?xml version="1.0" encoding="UTF-8" ?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
 def prepare(
@@ -599,7 +634,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--stop-timeout must be > 0")
     if args.nice is not None and not -20 <= args.nice <= 19:
         raise CliError(f"--nice must be in [-20, 19], got {args.nice}")
-    if not (args.dds_lease == 0 or 0.5 <= args.dds_lease <= 3600):
+    if args.dds_lease is not None and not (args.dds_lease == 0 or 0.5 <= args.dds_lease <= 3600):
         raise CliError(f"--dds-lease must be 0 or in [0.5, 3600] s, got {args.dds_lease}")
     with tempfile.TemporaryDirectory(prefix="ptz_selfcal_launch_") as tmp:
         modules = dict(NODE_MODULES)
@@ -618,12 +653,18 @@ def run(args: argparse.Namespace) -> int:
         specs = [NodeSpec(n.name, n.module) for n in plan]
         remaps = [f"{src}:={dst}" for src, dst in plan[0].remappings] if plan else []
         namespace = plan[0].namespace if plan else None
-        env = lease_environment(args.dds_lease, tmp)
+        env = dds_profile_environment(tmp, args.dds_lease)
         supervisor = Supervisor(
             specs, plan_params_file(plan, tmp), namespace, remaps, nice=args.nice, env=env
         )
         if env:
-            supervisor.log(f"DDS participant lease {args.dds_lease:g} s ({env[PROFILE_VARIABLES[0]]})")
+            supervisor.log(f"Fast DDS profile {env[PROFILE_VARIABLES[0]]}")
+        elif profile_named():
+            supervisor.log(
+                f"Fast DDS profile of the environment: {profile_named()} (ptz_selfcal's, "
+                f"{default_profile_file()}, is not loaded: its shared-memory segment and participant lease "
+                "apply only if yours has them)"
+            )
         stop = threading.Event()
 
         def on_signal(signum: int, _frame: Any) -> None:

@@ -16,12 +16,14 @@ to its last complete record and the summary says how many images were unreadable
 calibrator runs with inline_solves (each solve completes before the next frame) and frame_ingest only
 interpolates encoders between bracketing samples (encoder_max_hold 0, no extrapolation whose use depends
 on delivery order) and waits up to half of --timeout for them, so what each frame gets does not depend
-on delivery order or load.
+on delivery order or load. The nodes and the player load the shipped Fast DDS profile (config/fastdds.xml,
+as `launch` gives it) unless the environment names another.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -45,7 +47,7 @@ from ptz_selfcal.tools.bagio import (
     qos_from_rclpy,
 )
 from ptz_selfcal.tools.cli import CliError
-from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, prepare
+from ptz_selfcal.tools.launch import NODE_MODULES, NodeSpec, Supervisor, dds_profile_environment, prepare
 
 _IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 OUTPUT_TOPICS = (
@@ -241,10 +243,16 @@ def run(args: argparse.Namespace) -> int:
             ),
             NodeSpec("calibrator", args.calibrator_module, diag_remap + _overrides(calibrator_args)),
         ]
-        supervisor = Supervisor(specs, params_file, namespace, echo=not args.quiet, output=sys.stderr)
+        # The nodes and this process's player load the shipped Fast DDS profile: the player publishes the
+        # images, and its shared-memory segment is the one a raw image must fit in.
+        profile = dds_profile_environment()
+        supervisor = Supervisor(
+            specs, params_file, namespace, echo=not args.quiet, output=sys.stderr, env=profile
+        )
         writer = BagWriter(out)
         try:
             replay = _Replay(args, supervisor, writer, namespace, image_topic, image_type, total, bag_topics)
+            replay.profile = profile
             replay.encoder_topic = joints[0] if joints else None
             replay.bag_qos = bag_qos
             replay.last_bag_time = bag_start
@@ -293,6 +301,21 @@ def _own_cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+@contextlib.contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """os.environ with `values` set, restored afterwards."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
 def _overrides(values: dict[str, Any]) -> list[str]:
     return [arg for name, value in values.items() for arg in ("-p", f"{name}:={value}")]
 
@@ -330,6 +353,7 @@ class _Replay:
         self.output_topics = [*OUTPUT_TOPICS, *([topics.FRAME_IN] if args.record_frames else [])]
         self.encoder_topic: str | None = topics.bag_topic(topics.JOINT_STATES)
         self._lost_logged = 0
+        self.profile: dict[str, str] = {}  # environment of this process's DDS participant (the profile)
         self.diagnostics_seen: dict[str, float] = {}  # node name -> when its last diagnostics arrived
         self.diagnostics_values: dict[str, dict[str, str]] = {}  # node name -> its last counters
 
@@ -398,8 +422,9 @@ class _Replay:
         from ptz_selfcal.nodes.runtime import reliable_qos
 
         context = rclpy.Context()
-        rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-        node = rclpy.create_node("ptz_selfcal_run_player", namespace=self.namespace, context=context)
+        with _environment(self.profile):  # Fast DDS reads it when the process's first participant starts
+            rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+            node = rclpy.create_node("ptz_selfcal_run_player", namespace=self.namespace, context=context)
         self.node = node
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
