@@ -57,6 +57,8 @@ OUTPUT_TOPICS = (
     topics.KEYFRAMES,
     topics.DIAGNOSTICS,
 )
+STEADY_AFTER = 0.1  # fraction of the frames counted as start-up in the steady-state figures
+PLAYER = "run (player+recorder)"  # this process, in the CPU figures
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -130,6 +132,14 @@ class RunStats:
     started: float = 0.0
     finished: float = 0.0
     cpu_seconds: dict[str, float] = field(default_factory=dict)
+    # steady state: CPU seconds of each node and of this process, and the time, when the first
+    # STEADY_AFTER of the frames had their answer, and again when the last one had
+    steady_start: tuple[float, int, dict[str, float]] | None = None  # (time, frames answered, cpu)
+    steady_end: tuple[float, int, dict[str, float]] | None = None
+
+    @property
+    def answered(self) -> int:
+        return self.calibrated + self.skipped + self.lost
 
     @property
     def rate(self) -> float:
@@ -275,9 +285,36 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {out}",
         file=sys.stderr,
     )
-    cpu = {**stats.cpu_seconds, "run (player+recorder)": _own_cpu_seconds()}
+    cpu = {**stats.cpu_seconds, PLAYER: _own_cpu_seconds()}
     print(f"run: CPU seconds: {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}", file=sys.stderr)
+    steady = _steady_state(stats)
+    if steady is not None:
+        frames, rate, per_frame = steady
+        nodes = sum(v for k, v in per_frame.items() if k != PLAYER)
+        print(
+            f"run: steady state (after the first {STEADY_AFTER:.0%} of the frames, {frames} frames): "
+            f"{rate:.1f} frames/s; CPU ms per frame: "
+            + ", ".join(f"{k} {v:.2f}" for k, v in per_frame.items())
+            + f", nodes total {nodes:.2f}",
+            file=sys.stderr,
+        )
     return 0
+
+
+def _cpu_now(supervisor: Supervisor) -> dict[str, float]:
+    return {**supervisor.cpu_seconds(), PLAYER: _own_cpu_seconds()}
+
+
+def _steady_state(stats: RunStats) -> tuple[int, float, dict[str, float]] | None:
+    """(frames, frames/s, CPU ms per frame of each process) between the two steady-state samples."""
+    if stats.steady_start is None or stats.steady_end is None:
+        return None
+    (t0, n0, cpu0), (t1, n1, cpu1) = stats.steady_start, stats.steady_end
+    frames = n1 - n0
+    if frames <= 0 or t1 <= t0:
+        return None
+    per_frame = {k: 1e3 * (cpu1[k] - cpu0[k]) / frames for k in cpu1 if k in cpu0}
+    return frames, frames / (t1 - t0), per_frame
 
 
 def _unread_text(unread: int | None) -> str:
@@ -607,6 +644,8 @@ class _Replay:
                 pump()
             executor.spin_once(timeout_sec=0.02)
             now = time.monotonic()
+            if stats.steady_start is None and stats.answered >= max(1, round(STEADY_AFTER * stats.total)):
+                stats.steady_start = (now, stats.answered, _cpu_now(self.supervisor))
             while self.in_flight and now - self.in_flight[0].sent > args.timeout:
                 item = self.in_flight.popleft()
                 stats.lost += 1
@@ -627,6 +666,7 @@ class _Replay:
                         file=sys.stderr,
                     )
         stats.finished = time.monotonic()
+        stats.steady_end = (stats.finished, stats.answered, _cpu_now(self.supervisor))
         while not exhausted:  # copy the non-image topics after the last image
             pump()
             if queued:
