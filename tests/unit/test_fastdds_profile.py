@@ -85,3 +85,11 @@ def test_another_lease_is_a_copy_of_the_shipped_profile(tmp_path):
     assert _lease(Path(none)) is None
     # plain tag names: Fast DDS's parser does not resolve namespace prefixes
     assert "ns0:" not in profile_with_lease(default_profile_file().read_text(), 3.0)
+
+
+def test_no_profile_named_when_the_package_has_none(monkeypatch, tmp_path):
+    """An install without config/fastdds.xml names no file (Fast DDS would only log that it is missing)."""
+    from ptz_selfcal.tools import launch
+
+    monkeypatch.setattr(launch, "default_profile_file", lambda: tmp_path / "fastdds.xml")
+    assert launch.dds_profile_environment(str(tmp_path), None, FAST_DDS) == {}

@@ -572,13 +572,15 @@ def dds_profile_environment(
     """Environment variables that give a process's Fast DDS participants the shipped profile
     (config/fastdds.xml); with `lease` (seconds, announced every lease / 4; 0: the middleware's) a copy
     of it with that participant lease, written into `directory`. Empty when the middleware is not Fast
-    DDS or when the environment names a profile file other than the shipped one (the user's
-    configuration wins)."""
+    DDS, when the environment names a profile file other than the shipped one (the user's
+    configuration wins) or when the package was installed without it."""
     environ = os.environ if environ is None else environ
     rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     shipped = default_profile_file()
     named = profile_named(environ)
     if not rmw.startswith("rmw_fastrtps") or (named and Path(named).resolve() != shipped.resolve()):
+        return {}
+    if not shipped.is_file():  # Fast DDS would only log that it cannot read the file named
         return {}
     if lease is None:
         return {PROFILE_VARIABLES[0]: str(shipped)}
