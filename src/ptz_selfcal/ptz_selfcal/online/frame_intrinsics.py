@@ -9,11 +9,13 @@ homography, the last good K (tracking lost), the nominal field of view.
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ptz_selfcal.camera.geometry import intrinsic_matrix, rotation_from_homography
+from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.work import CalibrationSnapshot
@@ -24,6 +26,29 @@ from ptz_selfcal.zoom.model import ZoomModel
 Array = NDArray[np.float64]
 
 _LIMIT = 4096  # keyframe ids grow with the frame index: every per-keyframe map is bounded
+
+
+class TransferError:
+    """How far the K a frame gets by transfer (eq. 20) from its keyframe is off, per unit of log zoom
+    between them: measured at every new keyframe, whose own frame got its K by transfer from the keyframe
+    it was tracked against and which later gets the adjustment's own K. The frame's homography is tracked
+    and, for a distorted lens, corrected by a refit whose error grows with the zoom between the two
+    images, so neither the adjustment's covariance nor the chain's spread holds it."""
+
+    def __init__(self, samples: int = 8) -> None:  # recent keyframes: the lens estimate improves
+        self._samples: deque[tuple[float, float]] = deque(maxlen=samples)  # (log error, log zoom)
+        self._slope = 0.0
+
+    def add(self, error: float, zoom: float) -> None:
+        if math.isfinite(error) and math.isfinite(zoom):
+            self._samples.append((error, zoom))
+            zz = sum(z * z for _, z in self._samples)
+            # the rms of the error per unit of zoom, through the origin (no zoom, no transfer error)
+            self._slope = math.sqrt(sum(e * e for e, _ in self._samples) / zz) if zz > 1e-10 else 0.0
+
+    def sigma(self, zoom: float) -> float:
+        """The relative 1-sigma of f transferred over log zoom `zoom`."""
+        return self._slope * abs(zoom) if math.isfinite(zoom) else 0.0
 
 
 def _bounded_put(mapping: dict, key: int, value: object) -> None:
@@ -41,6 +66,10 @@ class KeyframeLinks:
         self.homography: dict[int, Array] = {}  # keyframe -> H reference -> keyframe
         self.neighbour: dict[int, tuple[int, Array | None]] = {}  # keyframe -> (linked keyframe, H)
         self.refused: set[int] = set()
+        # keyframe -> (the solved keyframe its own frame's K was transferred from, that frame's H), until
+        # the keyframe is solved itself
+        self.transferred: dict[int, tuple[int, Array]] = {}
+        self.transfer_error = TransferError()
 
     def add_keyframe(self, keyframe_id: int, H: Array) -> None:
         _bounded_put(self.homography, keyframe_id, H)
@@ -58,6 +87,25 @@ class KeyframeLinks:
     def forget_reference(self) -> None:
         """A new reference: the refusals were of the old one (links and homographies are per id)."""
         self.refused.clear()
+        self.transferred.clear()
+
+    def transfer_sample(self, snap: CalibrationSnapshot, keyframe_id: int) -> None:
+        """A keyframe's own K is solved: how far its own frame's transfer is off, in the same snapshot (the
+        transfer from the keyframe it was tracked against, by that frame's homography, against the
+        adjustment's K: a re-solve that moves the whole calibration in between is not a transfer error)."""
+        got = self.transferred.pop(keyframe_id, None)
+        base = None if got is None else snap.keyframes.get(got[0])
+        own = snap.keyframes.get(keyframe_id)
+        if got is None or base is None or own is None:
+            return
+        model, size = snap.calibrator.model, snap.calibrator.image_size
+        try:  # a measurement only: the frame's own K does not depend on it
+            K = intrinsics_from_transferred_diac(got[1] @ np.linalg.inv(base[0]), base[1], model, size)
+        except (SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+            return
+        f, f_own, f_base = float(K[1, 1]), float(own[1][1, 1]), float(base[1][1, 1])
+        if f > 0.0 and f_own > 0.0 and f_base > 0.0:
+            self.transfer_error.add(math.log(f / f_own), math.log(f_own / f_base))
 
 
 def frame_intrinsics(
@@ -78,9 +126,13 @@ def frame_intrinsics(
     K_ref, R_ref, sigma_f = snap.calibrator.frame_intrinsics(H)
     model, size = snap.calibrator.model, snap.calibrator.image_size
     local = snap.keyframes.get(keyframe_id)
+    if local is not None and keyframe_id in links.transferred:
+        links.transfer_sample(snap, keyframe_id)
     if local is None:
         start = keyframe_id if tracked_against is None else tracked_against
         local = snap.keyframes.get(start)
+        if local is not None and tracked_against is not None and keyframe_id not in links.transferred:
+            _bounded_put(links.transferred, keyframe_id, (start, np.asarray(H, dtype=float).copy()))
         if local is None:
             local = _unsolved_keyframe(snap, start, links)
     if local is None:
@@ -89,7 +141,10 @@ def frame_intrinsics(
     H_local = H @ np.linalg.inv(H_k)
     K = intrinsics_from_transferred_diac(H_local, K_k, model, size)
     R = rotation_from_homography(H_local, K_k, K) @ R_k
-    return K, R, sigma_f * K[1, 1] / K_ref[1, 1]
+    zoom = math.log(K[1, 1] / K_k[1, 1]) if K[1, 1] > 0.0 and K_k[1, 1] > 0.0 else math.nan
+    # the reference's honest sigma (the common scale, section 6.2) and the transfer's own error (eq. 20)
+    relative = math.hypot(sigma_f / K_ref[1, 1], links.transfer_error.sigma(zoom))
+    return K, R, relative * K[1, 1]
 
 
 def _unsolved_keyframe(

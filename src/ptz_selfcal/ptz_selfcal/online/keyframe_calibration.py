@@ -255,7 +255,8 @@ class KeyframeCalibration:
         adjusted = "+" in solve.method  # LM on eq. 22, then the bundle adjustment
         noise = self.solver.noise_estimate if adjusted else None
         spread = self._keyframe_spread(calibrator)
-        return honest_sigma(float(rel), noise, self.model_fit.tracker_noise, spread)
+        gap = self.solver.lens_model_gap if adjusted else 0.0
+        return honest_sigma(float(rel), noise, self.model_fit.tracker_noise, spread, gap)
 
     @staticmethod
     def _keyframe_spread(calibrator: IncrementalCalibrator) -> float:

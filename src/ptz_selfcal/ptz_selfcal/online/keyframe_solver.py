@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from ptz_selfcal.bundle import bundle_adjust, pair_observations
 from ptz_selfcal.bundle.selection import ModelChoice, compare_models
+from ptz_selfcal.camera.distortion import corner_radius, division_undistort_radius
 from ptz_selfcal.camera.geometry import (
     apply_homography,
     pixel_grid,
@@ -101,6 +102,9 @@ class KeyframeBundleSolver:
         self.distortion_delta_bic = math.nan
         self.pp_varying_adopted: bool | None = None
         self.pp_delta_bic = math.nan
+        # |f_LM / f_adjusted - 1| of the reference in the last accepted raw-point solve with a radial term
+        # (LM on the lens correction's homographies): the lens model's error (status_policy.honest_sigma)
+        self.lens_model_gap = 0.0
         self._lens_check: _LensCheck | None = None  # the solve's inputs until it is measured
         # a fixed lens: the last adjustment (reference keyframe id, K, keyframe id -> R), _warm_start
         self._warm: tuple[Hashable, Array, dict[Hashable, Array]] | None = None
@@ -223,6 +227,7 @@ class KeyframeBundleSolver:
         lens: LensModel | None,
     ) -> SelfCalibrationResult:
         self._lens_model_change_value, self._lens_check = math.nan, None  # this solve's, if any
+        self.lens_model_gap = 0.0
         # raw-point solve: an LM start flagged only for its motion (section 6.2, LM on corrected
         # homographies) is still refined, the adjustment's own analysis decides
         # a fixed lens likewise: LM on homographies of a pan flags a near-ambiguity that the
@@ -254,6 +259,9 @@ class KeyframeBundleSolver:
             return lm
         self.last_method = ba.method
         ba.method = f"{lm.method}+{ba.method}"
+        if lens is not None and _distortion_visible(ba, image_size, self.noise_estimate):
+            gap = abs(float(lm.K[0, 1, 1]) / float(ba.K[0, 1, 1]) - 1.0)
+            self.lens_model_gap = gap if math.isfinite(gap) else 0.0
         return ba
 
     def _bundle(
@@ -613,6 +621,23 @@ def uncertain_motion(result: SelfCalibrationResult) -> bool:
         and bool(np.all(np.isfinite(result.K)))
         and bool(np.all(result.K[:, 1, 1] > 0.0))
     )
+
+
+def _distortion_visible(
+    result: SelfCalibrationResult, image_size: tuple[int, int], noise: float | None
+) -> bool:
+    """The adjustment's radial term moves some keyframe's image corner by more than its residual noise:
+    a lens model that differs from a pinhole by something measurable (lens/hook.py keeps a lens whose
+    distortion moves no corner by that much on its tracked homographies, as a pinhole)."""
+    details = result.bundle
+    if details is None or details.lam is None or noise is None:
+        return False
+    for K, lam in zip(result.K, details.lam):
+        f = float(K[1, 1])
+        rho = corner_radius(K, *image_size) / f
+        if lam != 0.0 and f * abs(float(division_undistort_radius(rho, float(lam))) - rho) > noise:
+            return True
+    return False
 
 
 def _pp_model(varying: bool) -> IntrinsicsModel:

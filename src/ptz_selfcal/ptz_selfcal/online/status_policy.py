@@ -142,16 +142,25 @@ class StatusEvidence:
 
 
 def honest_sigma(
-    sigma_f: float, adjustment_noise: float | None, tracker_noise: float, keyframe_spread: float = 0.0
+    sigma_f: float,
+    adjustment_noise: float | None,
+    tracker_noise: float,
+    keyframe_spread: float = 0.0,
+    lens_model_gap: float = 0.0,
 ) -> float:
     """The adjustment's relative 1-sigma of f rescaled from its own residual noise (per observation) to the
     tracker's (per observation: a transfer error is two observations' noise, hence sqrt 2), never smaller;
     combined with the keyframes' spread: how far the adjustment's per-keyframe f departs from the reference
     K carried to the keyframe by its homography (eq. 20), which the frames inherit and the covariance of
-    a weakly linked chain of keyframes leaves out."""
+    a weakly linked chain of keyframes leaves out; and with the lens model's gap: how far the two routes
+    to f of a distorted lens disagree (section 7's corrected homographies through LM on eq. 22, and the
+    adjustment of eq. 27 with the radial term on the raw matches). Both fit the matches to the tracker's
+    noise, so neither covariance sees an error of the lens model (matches biased towards a pinhole map,
+    a distortion curve a little off) that moves f as one scale (section 6.2); their disagreement does."""
     if adjustment_noise is not None and adjustment_noise > 0.0 and math.isfinite(tracker_noise):
         sigma_f *= max(1.0, tracker_noise / (math.sqrt(2.0) * adjustment_noise))
-    return math.hypot(sigma_f, keyframe_spread) if math.isfinite(keyframe_spread) else sigma_f
+    terms = [t for t in (keyframe_spread, lens_model_gap) if math.isfinite(t)]
+    return math.sqrt(sigma_f * sigma_f + sum(t * t for t in terms))
 
 
 def decide(policy: StatusPolicy, e: StatusEvidence) -> tuple[CalibrationStatus, str]:
