@@ -153,7 +153,7 @@ def test_varying_pp_breakdown_in_configuration_b_is_flagged() -> None:
 
 def test_configuration_b_constant_pp_at_moderate_noise_is_confident() -> None:
     square_errors, sigmas = [], []
-    for seed in range(10):
+    for seed in range(40):
         H, K = _noisy_paper_b(0.5, seed)
         constant = lm_selfcalibration(H, SIZE, SQUARE_CONSTANT_PP)
         assert constant.ok, constant.message
@@ -161,10 +161,11 @@ def test_configuration_b_constant_pp_at_moderate_noise_is_confident() -> None:
         square_errors.append(np.mean((constant.K[:, 1, 1] / K[:, 1, 1] - 1.0) ** 2))
         sigmas.append(constant.motion.relative_sigma_f)
         assert np.sqrt(square_errors[-1]) < 0.03
-    # the Jacobian's relative sigma_f is the size of the actual error: a factor 2.7 is 3x the worst log
-    # deviation of this ratio from 1 over other sets of ten seeds
+    # the Jacobian's relative sigma_f is the size of the actual error: over forty seeds the ratio is
+    # 0.89..1.34 on seeds 0..159; the bounds are 3x its worst log deviation from their geometric middle
+    # (sigma_f x 3 or x 1/3 falls outside)
     ratio = float(np.mean(sigmas)) / float(np.sqrt(np.mean(square_errors)))
-    assert 1.0 / 2.7 < ratio < 2.7, ratio
+    assert 0.59 < ratio < 2.0, ratio
 
 
 def test_axis_disambiguation_is_eq_30s_term_about_each_camera_axis() -> None:

@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 import yaml
 
 from ptz_selfcal.camera.geometry import (
@@ -242,3 +243,14 @@ def test_focal_disagrees_in_log_f_beyond_the_floor_or_the_sigmas() -> None:
     # no usable value: disagrees (never trust it)
     assert focal_disagrees(math.nan, 1200.0, 1200.0, 0.01, 4.0, 0.1)
     assert focal_disagrees(-1.0, 1200.0, 1200.0, 0.01, 4.0, 0.1)
+
+
+@pytest.mark.parametrize("min_keyframes", [2, 3, 4])
+def test_the_first_solve_comes_with_the_min_keyframes_th_keyframe(min_keyframes: int) -> None:
+    """Keyframes 8 degrees off the reference about both axes, zooming: the motion is well posed from the
+    first keyframe on, so the first solve comes with keyframe number min_keyframes, not one later."""
+    _, _, H = sequence(32, radius_deg=8.0)
+    calibrator = IncrementalCalibrator(SIZE, min_keyframes=min_keyframes)
+    states = [calibrator.add_keyframe(j, H[j]) for j in (8, 16, 24, 31)]
+    initialising = [s is CalibrationStatus.INITIALISING for s in states]
+    assert initialising == [k < min_keyframes - 1 for k in range(4)], states

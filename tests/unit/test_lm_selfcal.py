@@ -144,10 +144,10 @@ def test_collapse_to_zero_focal_is_reported_as_failure() -> None:
 
 
 def test_noisy_constant_pp_within_statistical_bounds() -> None:
-    """Config A, sigma = 0.5 px, 5 seeds: rms focal error < 0.6 %, and consistent with sigma_f."""
+    """Config A, sigma = 0.5 px, 20 seeds: rms focal error < 0.6 %, and consistent with sigma_f."""
     K, R = paper_sequence("A")
     errors, z = [], []
-    for seed in range(5):
+    for seed in range(20):
         result = lm_selfcalibration(noisy_homographies(K, R, 0.5, seed), SIZE)
         assert result.ok, result.message
         err = result.K[:, 1, 1] - K[:, 1, 1]
@@ -158,9 +158,11 @@ def test_noisy_constant_pp_within_statistical_bounds() -> None:
     rms = float(np.sqrt(np.mean(np.square(errors))))
     assert 1e-4 < rms < 0.006
     # sigma_f from (J^T J)^-1 underestimates (frame-0 noise is shared by all H_j) but not wildly, and does
-    # not overestimate: the rms z-score over five seeds stays within 0.78..2.04 on other seed sets
+    # not overestimate: the rms z-score over twenty seeds is 1.20..1.57 on seeds 0..79; the bounds are 3x
+    # its worst log deviation from their geometric middle, rounded outward (sigma_f x 3 or x 1/3 falls
+    # outside)
     z_rms = float(np.sqrt(np.mean(np.square(z))))
-    assert 0.25 < z_rms < 5.0, z_rms
+    assert 0.9 < z_rms < 2.1, z_rms
 
 
 def test_noisy_varying_pp_less_accurate_than_constant_pp() -> None:
