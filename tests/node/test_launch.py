@@ -170,31 +170,3 @@ def test_nice_applies_to_every_node_thread_and_session(launch_env, start_process
         if autogroup.exists():
             assert autogroup.read_text().split()[-1] == "7", (name, autogroup.read_text())
     assert proc.stop(timeout=20.0) == 0, proc.output()
-
-
-def test_dds_lease_profile_for_the_nodes_unless_configured_otherwise(tmp_path):
-    """The nodes' Fast DDS participants get launch's short lease, so a killed node's endpoints leave the
-    graph after it (tests/reliability/test_restart.py measures the reconnection); the user's own profile
-    file, another middleware or --dds-lease 0 leave the middleware's setting alone."""
-    import xml.etree.ElementTree as ET
-
-    from ptz_selfcal.tools.launch import PROFILE_VARIABLES, lease_environment
-
-    env = lease_environment(2.5, str(tmp_path), {"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"})
-    ((variable, path),) = env.items()
-    assert variable == "FASTRTPS_DEFAULT_PROFILES_FILE" and Path(path).parent == tmp_path
-    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
-    participant = ET.parse(path).getroot().find("f:participant", ns)
-    assert participant.get("is_default_profile") == "true"
-    config = participant.find("f:rtps/f:builtin/f:discovery_config", ns)
-
-    def seconds(tag: str) -> float:
-        node = config.find(f"f:{tag}", ns)
-        return int(node.find("f:sec", ns).text) + 1e-9 * int(node.find("f:nanosec", ns).text)
-
-    assert seconds("leaseDuration") == 2.5 and seconds("leaseAnnouncement") == 0.625
-    assert lease_environment(2.0, str(tmp_path), {}) != {}  # Fast DDS is the default middleware
-    for environ in ({PROFILE_VARIABLES[0]: "/etc/mine.xml"}, {PROFILE_VARIABLES[1]: "/etc/mine.xml"},
-                    {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}):  # fmt: skip
-        assert lease_environment(2.0, str(tmp_path), environ) == {}, environ
-    assert lease_environment(0.0, str(tmp_path), {}) == {}

@@ -77,6 +77,7 @@ def test_install_space_has_node_executables_launch_and_config(colcon_install: Pa
     assert (share / "package.xml").exists()
     assert (share / "launch" / "ptz_selfcal.launch.py").exists()
     assert (share / "config" / "ptz_selfcal.yaml").exists()
+    assert (share / "config" / "fastdds.xml").exists()
     assert (
         colcon_install / "ptz_selfcal_msgs" / "share" / "ptz_selfcal_msgs" / "msg" / "FrameCalibration.msg"
     ).exists()

@@ -228,6 +228,9 @@ def test_ros_launch_file_starts_the_plan(monkeypatch, tmp_path):
         (n["executable"], n["name"], n["namespace"], n["parameters"], n["remappings"]) for n in nodes
     ] == [(p.name, p.name, p.namespace, [p.parameters], list(p.remappings)) for p in plan]
     assert all(n["package"] == "ptz_selfcal" for n in nodes)
+    from ptz_selfcal.tools.launch import dds_profile_environment
+
+    assert all(n["additional_env"] == dds_profile_environment() for n in nodes)  # the one Fast DDS profile
     context.launch_configurations["mosaic"] = "true"  # the optional live mosaic, after the suite
     with_mosaic = [a.kwargs for a in opaque.kwargs["function"](context) if "executable" in a.kwargs]
     assert [n["executable"] for n in with_mosaic] == [*(p.name for p in plan), "mosaic"]

@@ -43,6 +43,13 @@ class CalibratorNodeConfig:
         "name of the camera, the diagnostics' hardware_id (camera_info_manager's camera_name; '': the "
         "namespace's last component, /cam1: cam1)",
     )
+    camera_info_url: str = setting(
+        "",
+        "camera_calibration YAML (file:// URL or a path; as cameracalibrator or `ptz-selfcal "
+        "export-calibration` write it) whose K is the prior before the first calibration, in place of the "
+        "nominal field of view ('': none; unreadable: a configuration error; another image size: ignored "
+        "with a warning)",
+    )
     stale_timeout: float = setting(
         5.0,
         "seconds without a homography after which diagnostics report STALE (also before the first one)",
