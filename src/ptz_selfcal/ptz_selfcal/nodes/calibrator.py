@@ -12,7 +12,12 @@ ground truth); the zoom encoder is used to learn and query the zoom model.
 
 State: with `state_dir` set, the calibration state and the zoom model are saved atomically every
 `save_period` seconds (when changed) and on shutdown, and reloaded at start (a corrupt file gives a
-warning and a fresh start). Run:
+warning and a fresh start; a state of another image size, a swapped camera or lens, too).
+
+camera_info_manager's habits: `camera_info_url` (a camera_calibration YAML) gives the prior K in place of
+the nominal field of view; `~/set_camera_info` (sensor_msgs/SetCameraInfo) takes a measured K, e.g.
+cameracalibrator's, as the prior and as a zoom model sample at the current zoom; `~/reset`
+(std_srvs/Trigger) drops the calibration, the zoom model and the saved state, and starts fresh. Run:
     python -m ptz_selfcal.nodes.calibrator --ros-args -p state_dir:=/var/lib/ptz_selfcal/cam1
 """
 
@@ -29,6 +34,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Quaternion, TransformStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
+from sensor_msgs.srv import SetCameraInfo
+from std_srvs.srv import Trigger
 
 from ptz_selfcal import topics
 from ptz_selfcal.camera.geometry import quaternion_from_matrix
@@ -57,6 +64,11 @@ from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.session import CalibratorSession
+from ptz_selfcal.persist.camera_info_file import (
+    CameraInfoFileError,
+    camera_info_path,
+    read_camera_calibration,
+)
 from ptz_selfcal.status import HOMOGRAPHY_STATES, WARN_STATUSES, CalibrationStatus, TrackingState
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, KeyframeMatches
 
@@ -82,6 +94,8 @@ class CalibratorNode(Node):
         # a fixed lens estimates its one distortion coefficient inside the session's adjustment
         config.estimate_distortion = bool(p["estimate_distortion"]) and config.fixed_lens
         session = CalibratorSession(config, state_dir=p["state_dir"] or None)
+        self._camera_name = camera_name_of(self, p["camera_name"])
+        self._seed_prior(session, p["camera_info_url"])
         self._lens: SessionLensHook | None = None
         if p["estimate_distortion"] and not config.fixed_lens:
             self._lens = SessionLensHook(config.nominal_focal)
@@ -114,7 +128,6 @@ class CalibratorNode(Node):
         self._info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, reliable_qos())
         self._frame_pub = self.create_publisher(FrameCalibration, topics.FRAME_CALIBRATION, reliable_qos())
         self._orientation_pub = self.create_publisher(TransformStamped, topics.ORIENTATION, reliable_qos(10))
-        self._camera_name = camera_name_of(self, p["camera_name"])
         self._reference_frame = p["reference_frame"] or f"{self._camera_name}_selfcal_reference"
         self._child_frame = p["child_frame"] or f"{self._camera_name}_selfcal_optical"
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable_qos(10))
@@ -131,6 +144,8 @@ class CalibratorNode(Node):
             qos_overriding_options=qos_overrides(),
         )
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        self.create_service(SetCameraInfo, "~/set_camera_info", self._on_set_camera_info)
+        self.create_service(Trigger, "~/reset", self._on_reset)
         self._runner.start(inline=p["inline_solves"])
         self.get_logger().info(
             f"calibrating {topics.HOMOGRAPHY} -> {self._info_pub.topic_name}; state_dir "
@@ -138,6 +153,45 @@ class CalibratorNode(Node):
             f"{'on' if p['bundle_adjustment'] else 'off'} (pp {p['ba_principal_point']}, "
             f"prior sigma {p['pp_prior_sigma_px']} px); focal length {p['focal_model']}"
         )
+
+    def _seed_prior(self, session: CalibratorSession, url: str) -> None:
+        """camera_info_url's K as the prior; a file that cannot be read is a configuration error."""
+        try:
+            path = camera_info_path(url, self._camera_name)
+            if path is None:
+                return
+            calibration = read_camera_calibration(path)
+        except CameraInfoFileError as exc:
+            raise ConfigError(f"parameter camera_info_url: {exc}") from exc
+        session.seed_prior(calibration.K, (calibration.width, calibration.height))
+        K = calibration.K
+        self.get_logger().info(
+            f"prior K from {path} ({calibration.width}x{calibration.height} images): f = {K[1, 1]:.1f} px, "
+            f"pp = ({K[0, 2]:.1f}, {K[1, 2]:.1f})"
+        )
+
+    def _on_set_camera_info(
+        self, request: SetCameraInfo.Request, response: SetCameraInfo.Response
+    ) -> SetCameraInfo.Response:
+        info = request.camera_info
+        K = np.asarray(info.k, dtype=float).reshape(3, 3)
+        ok, text = self._runner.set_camera_info(K, np.asarray(info.d, dtype=float), (info.width, info.height))
+        response.success, response.status_message = ok, text
+        self._counts["set_camera_info_accepted" if ok else "set_camera_info_refused"] += 1
+        self._log("info" if ok else "warning", f"set_camera_info: {text}")
+        return response
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        removed = self._runner.reset("reset requested (~/reset): starting fresh")
+        state_dir = self._runner.session.state_dir
+        if state_dir is None:
+            saved = "no state_dir: nothing saved"
+        else:
+            saved = f"removed {', '.join(map(str, removed))}" if removed else f"no saved state in {state_dir}"
+        response.success = True
+        response.message = f"calibration and zoom model dropped, a new epoch; {saved}"
+        self._log("warning", f"reset: {response.message}")
+        return response
 
     # ----------------------------------------------------------------------------------------------
     def _log(self, level: str, text: str) -> None:
