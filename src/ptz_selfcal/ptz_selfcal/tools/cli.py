@@ -24,6 +24,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "write camera_calibration YAML per zoom setting from a saved zoom model",
     ),
     "reset": ("ptz_selfcal.tools.reset", "drop a camera's calibration and saved state: start afresh"),
+    "params": (
+        "ptz_selfcal.tools.params_reference",
+        "print every node's parameters: defaults, ranges, descriptions",
+    ),
 }
 
 
