@@ -142,7 +142,8 @@ def _to_gray8(pixels: np.ndarray, channels: int, order: str | None, limits: Imag
         if channels != 1:
             raise FrameError("unsupported_encoding", "16-bit colour images are not supported")
         top = max(1, int(limits.mono16_max))
-        return cv2.convertScaleAbs(np.minimum(pixels, top), alpha=255.0 / top)
+        # convertScaleAbs saturates at 255, so values above top need no clipped copy first
+        return cv2.convertScaleAbs(pixels, alpha=255.0 / top)
     if channels == 1:
         return pixels
     code = {
@@ -367,7 +368,7 @@ def fill_mono8(msg: Any, image: Mono8) -> None:
     msg.is_bigendian = 0
     msg.step = int(image.shape[1])
     data = array.array("B")
-    data.frombytes(image.tobytes())
+    data.frombytes(memoryview(image))  # one copy: tobytes() would make a second
     msg.data = data
 
 

@@ -244,6 +244,15 @@ def _header_of(msg: Any) -> Header:
     return msg.header
 
 
+def working_image_msg(header: Any, image: Any) -> Image:
+    """IngestedFrame's sensor_msgs/Image: the mono8 working image, copied once."""
+    # check_fields: its data setter keeps the filled array; unchecked, it copies the pixels once more
+    msg = Image(check_fields=True)
+    msg.header = header
+    fill_mono8(msg, image)
+    return msg
+
+
 @dataclass
 class _Pending:
     frame: WorkingImage
@@ -612,8 +621,7 @@ class FrameIngest(Node):
         frame = item.frame
         msg = IngestedFrame()
         msg.header = item.header
-        msg.image.header = item.header
-        fill_mono8(msg.image, frame.image)
+        msg.image = working_image_msg(item.header, frame.image)
         msg.full_width = frame.full_width
         msg.full_height = frame.full_height
         msg.scale = frame.scale
