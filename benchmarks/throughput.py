@@ -16,8 +16,15 @@ comparison the shipped profile was chosen by.
 Targets (issue 19): nodes total <= 8 ms per frame at 1280x720 JPEG; lock-step >= 150 frames/s at 1280x720
 JPEG and >= 80 at 1920x1080 JPEG; raw bgr8 1280x720 at least as fast as JPEG.
 
+With --ingest-only, frame_ingest's own per-frame work instead, in this process and without DDS: the
+copy rclpy makes when it takes a serialized image, the header read in place, the conversion to mono8 at
+the working width, the IngestedFrame fill and its serialisation (what the publisher does), in process CPU
+ms per frame (median of --repeats blocks of 100 frames) at 1280x720 and 1920x1080, JPEG and raw bgr8
+(the panorama cropped, JPEG quality 90 as synth's default). Run it on two trees (PYTHONPATH) to compare.
+
     ros2_ws/venv/bin/python benchmarks/throughput.py [--frames 300] [--repeats 2] [--old-profile]
-Writes benchmarks/results/throughput.txt (and prints it).
+    ros2_ws/venv/bin/python benchmarks/throughput.py --ingest-only [--repeats 5] [--append]
+Writes benchmarks/results/throughput.txt (and prints it); --append adds the run after the file's text.
 """
 
 from __future__ import annotations
@@ -188,6 +195,112 @@ def verdicts(results: list[RunResult]) -> list[str]:
     return lines
 
 
+def ingest_messages(case: str, count: int) -> list[bytes]:
+    """Serialized images of a case as frame_ingest receives them: crops of the panorama along a pan."""
+    import cv2
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import CompressedImage, Image
+
+    width, height, fmt = CASES[case]
+    pano = cv2.imread(str(PANORAMA), cv2.IMREAD_COLOR)
+    scale = max(1.0, 1.1 * height / pano.shape[0], 1.1 * width / pano.shape[1])
+    if scale > 1.0:
+        pano = cv2.resize(pano, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+    span = pano.shape[1] - width
+    out = []
+    for k in range(count):
+        x0 = (7 * k) % max(1, span)
+        crop = np.ascontiguousarray(pano[:height, x0 : x0 + width])
+        if fmt == "jpeg":
+            msg = CompressedImage(format="jpeg")
+            msg.data = cv2.imencode(".jpg", crop, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+        else:
+            msg = Image(height=height, width=width, encoding="bgr8", step=3 * width)
+            msg.data = crop.tobytes()
+        msg.header.stamp.sec, msg.header.frame_id = k, "ptz_camera"
+        out.append(serialize_message(msg))
+    return out
+
+
+def ingest_cpu_ms(case: str, repeats: int, working_width: int = 640) -> tuple[float, float]:
+    """(median, spread) of frame_ingest's process CPU ms per frame for one case, without DDS."""
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Header
+
+    from ptz_selfcal.nodes import frame_ingest as fi
+    from ptz_selfcal.nodes.conversions import (
+        ImageLimits,
+        compressed_to_working,
+        fill_mono8,
+        image_to_working,
+        parse_serialized_image,
+    )
+    from ptz_selfcal_msgs.msg import IngestedFrame
+
+    compressed = CASES[case][2] == "jpeg"
+    convert = compressed_to_working if compressed else image_to_working
+    limits = ImageLimits()
+    messages = ingest_messages(case, 100)
+
+    def one(data: bytes) -> bytes:
+        taken = bytes(bytearray(data))  # rclpy's take of a serialized message: one copy into a bytes object
+        view = parse_serialized_image(taken, compressed=compressed)
+        frame = convert(view, working_width, limits)
+        header = Header(stamp=Time(sec=view.sec, nanosec=view.nanosec), frame_id=view.frame_id)
+        msg = IngestedFrame()
+        msg.header = header
+        if hasattr(fi, "working_image_msg"):
+            msg.image = fi.working_image_msg(header, frame.image)
+        else:  # a tree from before it
+            msg.image.header = header
+            fill_mono8(msg.image, frame.image)
+        msg.full_width, msg.full_height, msg.scale = frame.full_width, frame.full_height, frame.scale
+        return serialize_message(msg)  # the publisher's conversion to C and serialisation
+
+    for data in messages[:10]:  # warm-up: imports, OpenCV's buffers
+        one(data)
+    blocks = []
+    for _ in range(repeats):
+        start = time.process_time()
+        for data in messages:
+            one(data)
+        blocks.append(1e3 * (time.process_time() - start) / len(messages))
+    return float(np.median(blocks)), float(np.max(blocks) - np.min(blocks))
+
+
+def ingest_only(args: argparse.Namespace, given: str) -> int:
+    import ptz_selfcal
+
+    lines = [
+        f"# ros2_ws/venv/bin/python benchmarks/throughput.py {given}".rstrip(),
+        f"# {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}, {os.cpu_count()} CPUs, ptz_selfcal "
+        f"from {Path(ptz_selfcal.__file__).parent}",
+        "# frame_ingest's per-frame work without DDS (take copy, header in place, mono8 at width 640, "
+        "IngestedFrame fill and serialisation), process CPU ms per frame, median of blocks of 100 frames",
+        "",
+        "  case        ingest ms/frame  (spread)  load 1m",
+    ]
+    for case in args.cases:
+        load = os.getloadavg()[0]
+        ms, spread = ingest_cpu_ms(case, args.repeats)
+        lines.append(f"  {case:<11} {ms:10.2f}      ({spread:4.2f})    {load:4.1f}")
+        print(lines[-1], flush=True)
+    write(args, lines)
+    return 0
+
+
+def write(args: argparse.Namespace, lines: list[str]) -> None:
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.no_write:
+        return
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.append and args.out.exists():
+        text = args.out.read_text().rstrip("\n") + "\n\n" + text
+    args.out.write_text(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -202,8 +315,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--domain", type=int, default=212, help="ROS_DOMAIN_ID of the runs (default 212)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "throughput.txt")
     parser.add_argument("--no-write", action="store_true", help="print only")
+    parser.add_argument("--append", action="store_true", help="add the run after the text of --out")
+    parser.add_argument(
+        "--ingest-only", action="store_true", help="frame_ingest's per-frame work in this process, no DDS"
+    )
     args = parser.parse_args(argv)
     given = " ".join(argv if argv is not None else sys.argv[1:])
+    if args.ingest_only:
+        return ingest_only(args, given)
     lines = [
         f"# ros2_ws/venv/bin/python benchmarks/throughput.py {given}".rstrip(),
         f"# {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}, {os.cpu_count()} CPUs, load average "
@@ -228,11 +347,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(lines[-1], flush=True)
     lines += verdicts(results)
     lines.append(f"# load average at the end {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if not args.no_write:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    write(args, lines)
     return 0
 
 
