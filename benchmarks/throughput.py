@@ -244,7 +244,7 @@ def ingest_cpu_ms(case: str, repeats: int, working_width: int = 640) -> tuple[fl
     messages = ingest_messages(case, 100)
 
     def one(data: bytes) -> bytes:
-        taken = bytes(bytearray(data))  # rclpy's take of a serialized message: one copy into a bytes object
+        taken = bytes(memoryview(data))  # rclpy's take of a serialized message: one copy into a bytes object
         view = parse_serialized_image(taken, compressed=compressed)
         frame = convert(view, working_width, limits)
         header = Header(stamp=Time(sec=view.sec, nanosec=view.nanosec), frame_id=view.frame_id)
