@@ -127,7 +127,7 @@ def test_one_homography_per_frame_accurate_and_lost_frames_flagged(
     proc = start_process(node_command(MODULE, "-p", "diagnostics_period:=0.2"), ros_env, "tracker")
     tex = texture(shared_data)
     connect(harness, proc)
-    pans = np.radians(np.linspace(0.0, 16.0, 25))
+    pans = np.radians(np.linspace(0.0, 8.0, 25))
     truths = []
     for seq, pan in enumerate(pans):
         image, H_true = frame(tex, float(pan), float(0.2 * pan))
@@ -152,7 +152,7 @@ def test_one_homography_per_frame_accurate_and_lost_frames_flagged(
     for msg in harness.homographies[len(pans) :]:
         assert tracking_state(msg) in LOST_STATES
         assert np.array_equal(np.asarray(msg.h), np.eye(3).ravel()) and msg.inlier_count == 0
-    assert harness.keyframes, "a 16 degree pan must make new keyframes with links"
+    assert harness.keyframes, "an 8 degree pan must make new keyframes with links"
     for kf in harness.keyframes:
         assert len(kf.points) == len(kf.other_points) > 0 and len(kf.points) % 2 == 0
         assert np.all(np.isfinite(kf.h))
@@ -230,7 +230,7 @@ def test_restarted_tracker_reloads_its_map_and_keeps_the_reference(
     proc = start_process(node_command(MODULE, *args), ros_env, "tracker_first")
     tex = texture(shared_data)
     connect(harness, proc)
-    pans = np.radians(np.linspace(0.0, 16.0, 25))
+    pans = np.radians(np.linspace(0.0, 8.0, 25))
     for seq, pan in enumerate(pans):
         harness.send(seq, frame(tex, float(pan), float(0.2 * pan))[0], float(pan))
         harness.spin(0.01)
@@ -239,7 +239,7 @@ def test_restarted_tracker_reloads_its_map_and_keeps_the_reference(
     last_keyframe = max(
         m.keyframe_id for m in harness.homographies if tracking_state(m) == TrackingState.NEW_KEYFRAME
     )
-    assert last_keyframe > 0, "a 16 degree pan must make new keyframes"
+    assert last_keyframe > 0, "an 8 degree pan must make new keyframes"
 
     def saved() -> bool:
         d = harness.diagnostics[-1] if harness.diagnostics else {}

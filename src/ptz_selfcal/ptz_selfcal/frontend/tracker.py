@@ -224,12 +224,6 @@ class HomographyTracker:
         keyframe = self._keyframes[self._keyframe_id]
         current, ok, H_pred = self._klt_tracks(keyframe, image)
         fit = self._fit_tracks(current, ok)
-        if c.klt_source == "warped" and c.klt_predicted_levels < c.klt_levels and self._poor(fit, ok):
-            # the prediction was not close: the whole pyramid's capture range
-            current2, ok2 = self._warped_klt(keyframe, image, H_pred, levels=c.klt_levels)
-            fit2 = self._fit_tracks(current2, ok2)
-            if not self._poor(fit2, ok2):
-                current, ok, fit = current2, ok2, fit2
         # Second warp + KLT pass when the prediction was poor: the residual then has (almost) no
         # scale/rotation left for translational KLT to be biased by (Gauss-Newton on the warp).
         repeat = fit is not None and c.klt_source == "warped" and c.repeat_threshold > 0.0
@@ -289,11 +283,6 @@ class HomographyTracker:
         _LOG.debug("frame %d: tracked fit contradicted by descriptors: lost", self._frame_index)
         return current, ok, None
 
-    def _poor(self, fit: RobustFit | None, ok: NDArray[np.bool_]) -> bool:
-        """A pass that would lose the frame."""
-        c = self.config
-        return fit is None or fit.inliers.sum() < c.min_inlier_ratio * max(int(ok.sum()), 1)
-
     def _fit_tracks(self, current: Points, ok: NDArray[np.bool_]) -> RobustFit | None:
         """Keyframe -> frame homography (working pixels) from the tracks that survived KLT."""
         c = self.config
@@ -318,7 +307,7 @@ class HomographyTracker:
             guess = self._predicted_positions(H_pred)
             reference = gain_matched(keyframe.image, image) if gain else keyframe.image
             return (*track_klt(reference, image, tracks.in_keyframe, self._klt, initial=guess), H_pred)
-        return (*self._warped_klt(keyframe, image, H_pred, levels=self.config.klt_predicted_levels), H_pred)
+        return (*self._warped_klt(keyframe, image, H_pred), H_pred)
 
     def _predicted_positions(self, H_pred: Array) -> Points:
         guess = apply_homography(H_pred, self._tracks.in_keyframe).astype(np.float32)

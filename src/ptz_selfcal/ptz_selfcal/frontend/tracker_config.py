@@ -26,10 +26,6 @@ class TrackerConfig:
     min_corner_eigenvalue: float = 2e-4  # absolute texture floor (OpenCV normalised eigenvalue)
     klt_window: int = 15
     klt_levels: int = 3
-    # The warped keyframe is within a few pixels of the frame (constant-velocity prediction): coarse levels
-    # add no capture range it needs, only windows wide enough for a large object moving apart from the
-    # background to pull the flow. The whole pyramid when this pass fails.
-    klt_predicted_levels: int = 1  # pyramid levels of the first KLT pass from the warped keyframe
     klt_iterations: int = 10
     klt_epsilon: float = 0.01  # KLT stops when the update is below this (working pixels)
     klt_fb_threshold: float = 0.5  # working pixels
