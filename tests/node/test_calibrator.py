@@ -131,7 +131,14 @@ class Harness:
         assert ok, "calibrator did not connect"
 
     def send(
-        self, j: int, H: np.ndarray, state: int, keyframe_id: int, zoom: float, timeout: float = 10.0
+        self,
+        j: int,
+        H: np.ndarray,
+        state: int,
+        keyframe_id: int,
+        zoom: float,
+        timeout: float = 10.0,
+        size: tuple[int, int] = (WIDTH, HEIGHT),
     ) -> int:
         stamp = T0_NS + j * 33_333_333
         msg = HomographyStamped()
@@ -143,7 +150,7 @@ class Harness:
         msg.keyframe_id = keyframe_id
         msg.h = [float(v) for v in np.asarray(H, dtype=float).ravel()]
         msg.inlier_count = 200
-        msg.image_width, msg.image_height = WIDTH, HEIGHT
+        msg.image_width, msg.image_height = size
         msg.encoders.zoom, msg.encoders.valid = float(zoom), True
         msg.encoders.pan = msg.encoders.tilt = float("nan")
         # a re-sent stamp waits for its own answer, not the one its first sending got

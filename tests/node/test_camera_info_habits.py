@@ -26,7 +26,6 @@ from std_srvs.srv import Trigger  # noqa: E402
 from test_calibrator import (  # noqa: E402
     HEIGHT,
     KEYFRAME_EVERY,
-    T0_NS,
     WIDTH,
     _diag_value,
     _namespaced_harness,
@@ -71,25 +70,7 @@ def start(namespace: str, params_dir: Path, *params: str) -> subprocess.Popen:
 
 def send(harness, j: int, H, state: int, keyframe_id: int, zoom: float, size=(WIDTH, HEIGHT)) -> int:
     """One HomographyStamped of images `size`; waits for its CameraInfo and FrameCalibration."""
-    stamp = T0_NS + j * 33_333_333
-    msg = HomographyStamped()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
-    msg.header.frame_id = topics.CAMERA_FRAME_ID
-    msg.state = state
-    msg.reference_frame_id = topics.CAMERA_FRAME_ID
-    msg.reference_stamp.sec, msg.reference_stamp.nanosec = divmod(T0_NS, 10**9)
-    msg.keyframe_id = keyframe_id
-    msg.h = [float(v) for v in np.asarray(H, dtype=float).ravel()]
-    msg.inlier_count = 200
-    msg.image_width, msg.image_height = size
-    msg.encoders.zoom, msg.encoders.valid = float(zoom), True
-    msg.encoders.pan = msg.encoders.tilt = float("nan")
-    infos, frames = harness.info_count.get(stamp, 0), harness.frame_count.get(stamp, 0)
-    harness.pub.publish(msg)
-    assert harness.spin_until(
-        lambda: harness.info_count.get(stamp, 0) > infos and harness.frame_count.get(stamp, 0) > frames, 10.0
-    ), f"no output for {j}"
-    return stamp
+    return harness.send(j, H, state, keyframe_id, zoom, size=size)
 
 
 def sweep(harness, offset: int, keyframes: int, n: int = 140) -> tuple[np.ndarray, list[int]]:
