@@ -321,7 +321,7 @@ def test_absurd_parameter_exits_with_a_clear_error(ros_env, start_process):
     assert "joint_names must be two or three distinct names" in proc.output()
 
 
-def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_env, start_process):
+def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_env, start_process, tmp_path):
     """Encoder messages that piled up while the node had no CPU (here: SIGSTOP) are all taken in the next
     encoder callback. The executor hands over one message per subscription and wake-up, so with frames
     arriving as often as encoder messages such a backlog never shrank under load and every frame waited
@@ -331,12 +331,18 @@ def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_en
     import os
     import signal
 
+    from ptz_selfcal.tools.launch import dds_profile_environment
+
+    # The node is stopped for as long as the backlog takes to send, on a loaded machine more than the
+    # suite's 2 s participant lease: the harness would then drop it as dead, and the image with it (the
+    # lease's purpose, not this test's). The shipped profile with the middleware's lease, here only.
+    env = {**ros_env, **dds_profile_environment(str(tmp_path), lease=0.0, environ=ros_env)}
     proc = start_process(
         node_command(
             MODULE, "-p", "working_width:=160", "-p", "diagnostics_period:=0.2", "-p", "queue_policy:=latest",
             "-p", "queue_depth:=1", "-p", "sensor_reliability:=reliable", "-p", "encoder_wait:=2.0",
         ),
-        ros_env,
+        env,
         "frame_ingest_backlog",
     )  # fmt: skip
     h = Harness()
