@@ -14,8 +14,9 @@ from pathlib import Path
 from urllib.parse import unquote, urlparse
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
+
+from ptz_selfcal.persist.state_files import read_yaml_mapping
 
 Array = NDArray[np.float64]
 
@@ -51,13 +52,7 @@ def camera_info_path(url: str, camera_name: str = "") -> Path | None:
 def read_camera_calibration(path: str | os.PathLike[str]) -> CameraCalibration:
     """The calibration in a camera_calibration YAML file; CameraInfoFileError when it is unusable."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        first = (str(exc).splitlines() or [""])[0]
-        raise CameraInfoFileError(f"{path}: unreadable ({type(exc).__name__}: {first})") from exc
-    if not isinstance(data, dict):
-        raise CameraInfoFileError(f"{path}: not a camera_calibration YAML mapping")
+    data = read_yaml_mapping(path, CameraInfoFileError, "camera_calibration YAML mapping")
     try:
         width, height = int(data["image_width"]), int(data["image_height"])
         K = _matrix(data["camera_matrix"], 3, 3)

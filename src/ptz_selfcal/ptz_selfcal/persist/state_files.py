@@ -26,13 +26,21 @@ def load_yaml_file(path: str | os.PathLike[str]) -> dict | None:
     path = Path(path)
     if not path.exists():
         return None
+    return read_yaml_mapping(path, StateFileError)
+
+
+def read_yaml_mapping(
+    path: str | os.PathLike[str], error: type[Exception], what: str = "YAML mapping"
+) -> dict:
+    """The mapping in a YAML file; `error` saying why when the file cannot be read or holds no mapping."""
+    path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         first = (str(exc).splitlines() or [""])[0]
-        raise StateFileError(f"{path}: unreadable ({type(exc).__name__}: {first})") from exc
+        raise error(f"{path}: unreadable ({type(exc).__name__}: {first})") from exc
     if not isinstance(data, dict):
-        raise StateFileError(f"{path}: not a YAML mapping")
+        raise error(f"{path}: not a {what}")
     return data
 
 
