@@ -108,8 +108,8 @@ class CalibratorNode(Node):
             self._lens.restored(session)
             if restored:  # the lens correction's own state is not saved: say what the frames get
                 self.get_logger().info(
-                    "restored lens: no correction needed (no distortion, or one below the noise), frames keep "
-                    "their homographies"
+                    "restored lens: no correction needed (no distortion, or one below the noise), frames "
+                    "keep their homographies"
                     if self._lens.pinhole
                     else "restored lens: its correction starts anew, frames of the restored map get K "
                     "from the zoom model (PREDICTED_FROM_ZOOM) until new keyframes are corrected"
