@@ -185,7 +185,8 @@ class KeyframeCalibration:
             self.keyframe_rate.pop(next(iter(self.keyframe_rate)))
 
     def new_calibrator(self) -> IncrementalCalibrator:
-        """An empty calibrator whose prior is the zoom model at the reference's zoom, else nominal."""
+        """An empty calibrator whose prior is the zoom model at the reference's zoom, else the given K
+        (given_K), else nominal."""
         assert self.image_size is not None
         return new_calibrator(
             self.config,
@@ -193,7 +194,12 @@ class KeyframeCalibration:
             self.zoom_model if self.zoom_ready else None,
             self.keyframe_zoom.get(self.solver.reference_keyframe_id, math.nan),  # type: ignore[arg-type]
             self.solver,
+            given_K=self.given_K(),
         )
+
+    def given_K(self) -> Array | None:
+        """A K given for these images in place of the nominal prior (none here)."""
+        return None
 
     def _solved(self, seconds: float, first: bool) -> None:
         calibrator = self.calibrator
@@ -473,11 +479,16 @@ def new_calibrator(
     zoom_model: ZoomModel | None,
     reference_zoom: float,
     solver: KeyframeBundleSolver | None = None,
+    given_K: Array | None = None,
 ) -> IncrementalCalibrator:
     """An empty incremental calibrator; its prior K is the zoom model's at the reference zoom when there
-    is one, else the nominal field of view at the image centre."""
+    is one, else given_K (a measured K: camera_info_url, set_camera_info), else the nominal field of
+    view at the image centre."""
     width, height = image_size
-    prior = intrinsic_matrix(config.nominal_focal(width), 0.5 * (width - 1.0), 0.5 * (height - 1.0))
+    if given_K is not None:
+        prior = np.array(given_K, dtype=float)
+    else:
+        prior = intrinsic_matrix(config.nominal_focal(width), 0.5 * (width - 1.0), 0.5 * (height - 1.0))
     if zoom_model is not None and math.isfinite(reference_zoom):
         with contextlib.suppress(ZoomModelError, ValueError):
             prior = zoom_model.predict(reference_zoom).K

@@ -109,14 +109,9 @@ class PriorCalibration(KeyframeCalibration):
 
     prior: SizedK | None = None
 
-    def new_calibrator(self) -> IncrementalCalibrator:
-        calibrator = super().new_calibrator()
+    def given_K(self) -> Array | None:
         prior = self.prior
-        if prior is not None and prior[1] == self.image_size:
-            nominal = new_calibrator(self.config, prior[1], None, math.nan).prior_K
-            if np.array_equal(calibrator.prior_K, nominal):  # not the zoom model's
-                calibrator.prior_K = prior[0].copy()
-        return calibrator
+        return prior[0].copy() if prior is not None and prior[1] == self.image_size else None
 
     def anchor(self, zoom: float, K: Array, D: Array, size: tuple[int, int]) -> None:
         """A measured K at this zoom (NaN: no zoom reading): the prior, and a zoom model sample."""
@@ -375,11 +370,7 @@ class CalibratorSession:
 
     def _prior_calibrator(self) -> IncrementalCalibrator:
         assert self.image_size is not None
-        calibrator = new_calibrator(self.config, self.image_size, self._zoom, math.nan)
-        given = self._given_K()
-        if given is not None:
-            calibrator.prior_K = given
-        return calibrator
+        return new_calibrator(self.config, self.image_size, self._zoom, math.nan, given_K=self._given_K())
 
     def _given_K(self) -> Array | None:
         """The given prior K (camera_info_url, set_camera_info) when it is of these images."""
