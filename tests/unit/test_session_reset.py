@@ -10,13 +10,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from test_calibration_state import HEIGHT, WIDTH, encoded_sweep, feed
+import pytest
+from test_calibration_state import HEIGHT, WIDTH, encoded_sweep, feed, zoom_counts
 from test_session_runner import SAFETY_S, HeldSolve
 
-from ptz_selfcal.camera.geometry import intrinsic_matrix
+from ptz_selfcal.camera.geometry import intrinsic_matrix, ptz_rotation
 from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput
+from ptz_selfcal.online.gates import RestoredStateCheck
 from ptz_selfcal.online.session import CalibratorSession
 from ptz_selfcal.persist.state_files import STATE_FILE, ZOOM_MODEL_FILE
 from ptz_selfcal.status import CALIBRATED, CalibrationStatus, TrackingState
@@ -89,3 +91,54 @@ def test_a_saved_state_of_another_image_size_gives_way_at_the_first_frame(tmp_pa
     session.step(1.0, paced=False)  # inline, the solving half forgets too: no zoom model of that camera
     assert session.calibration.zoom_model.is_empty()
     assert session.snapshot is not None and session.snapshot.calibrator.image_size == (width, height)
+
+
+def _still_zoom_pan(session: CalibratorSession, scale: float, frames: int = 40) -> list:
+    """Frames of a pan at a still zoom (f 1500 px of the saved lens), tracked against the saved reference,
+    through a lens whose f is `scale` times the saved lens's at that zoom encoder reading: a lens swapped
+    at the same image size (scale 1: the same lens)."""
+    K_old_ref = intrinsic_matrix(1000.0, 639.5 + 15.0, 359.5 - 10.0)  # the saved sweep's reference K
+    assert np.allclose(session.snapshot.calibrator.reference_K, K_old_ref, rtol=5e-3)
+    K = intrinsic_matrix(1500.0 * scale, 639.5 + 15.0, 359.5 - 10.0)
+    zoom = float(zoom_counts(1500.0)[0])
+    outs = []
+    for j in range(frames):
+        pan, tilt = np.radians(3.0 * np.sin(j / 10.0)), np.radians(1.0 * np.cos(j / 7.0))
+        H = K @ ptz_rotation(pan, tilt) @ np.linalg.inv(K_old_ref)
+        frame = FrameInput(100.0 + j / 30.0, H, TrackingState.TRACKING, WIDTH, HEIGHT, 0, "ref", zoom)
+        outs.append(session.process(frame))
+    return outs
+
+
+# 0.92: within the zoom gate's floor (one frame passes it), beyond 4 sigma of the saved model
+@pytest.mark.parametrize("scale", [1.25, 0.92])
+def test_a_saved_state_of_another_lens_of_the_same_image_size_gives_way(tmp_path: Path, scale: float) -> None:
+    """A lens swapped at the same image size: the frames' focal lengths through their homographies
+    (eq. 20) disagree with the saved zoom model at their zoom encoder; within the first frames judged
+    the session starts fresh with a warning, and no later frame is served from the old lens's model."""
+    converged(tmp_path)
+    session = CalibratorSession(SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    session.restore()
+    outs = _still_zoom_pan(session, scale)
+    stale = session.take_stale_state()
+    assert stale and "swapped camera or lens" in stale and "disagree with the saved zoom model" in stale
+    assert session.counters["resets"] == 1
+    first = next(j for j, out in enumerate(outs) if out.status == CalibrationStatus.INITIALISING)
+    assert first <= RestoredStateCheck.FRAMES + 1
+    for out in outs[first:]:  # the nominal prior through the frame's homography, not the old zoom model
+        assert out.status == CalibrationStatus.INITIALISING and out.source in ("prior", "nominal"), out
+    session.step(1.0, paced=False)
+    assert session.calibration.zoom_model.is_empty()
+
+
+def test_a_saved_state_of_the_same_lens_is_kept(tmp_path: Path) -> None:
+    """The control: the same lens after a restart keeps its calibration and zoom model."""
+    converged(tmp_path)
+    session = CalibratorSession(SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    session.restore()
+    outs = _still_zoom_pan(session, 1.0)
+    assert session.take_stale_state() is None and session.counters["resets"] == 0
+    assert session.calibration.zoom_model.sample_count > 0
+    for out in outs:
+        assert out.status in CALIBRATED, out
+        assert abs(out.K[1, 1] / 1500.0 - 1.0) < 0.01, out.K

@@ -12,7 +12,8 @@ ground truth); the zoom encoder is used to learn and query the zoom model.
 
 State: with `state_dir` set, the calibration state and the zoom model are saved atomically every
 `save_period` seconds (when changed) and on shutdown, and reloaded at start (a corrupt file gives a
-warning and a fresh start; a state of another image size, a swapped camera or lens, too).
+warning and a fresh start; a state of another image size, or one whose zoom model the first frames
+after the restart contradict, a swapped camera or lens, too).
 
 camera_info_manager's habits: `camera_info_url` (a camera_calibration YAML) gives the prior K in place of
 the nominal field of view; `~/set_camera_info` (sensor_msgs/SetCameraInfo) takes a measured K, e.g.

@@ -167,9 +167,12 @@ class SessionRunner:
             stale = self.session.take_stale_state()
             if stale:
                 self._forget()
-        if stale:  # a swapped camera or lens: its state is not this camera's
+        if stale:  # a swapped camera or lens: its state is not this camera's (the session warns why)
             removed = self._remove_files()
-            self.log("warning", stale + (f" (removed {', '.join(map(str, removed))})" if removed else ""))
+            if removed:
+                self.log(
+                    "warning", f"removed the saved state that does not fit: {', '.join(map(str, removed))}"
+                )
             self.wake()
         return out, invalid
 

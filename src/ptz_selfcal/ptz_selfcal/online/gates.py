@@ -6,6 +6,8 @@
   homographies chain over small overlaps and drift.
 - `zoom_gate`: a homography whose K (eq. 20) contradicts the zoom model at a still zoom encoder is
   refused; one whose image zoomed while the encoder was still is held out of the solve.
+- `RestoredStateCheck`: whether a restored state is of this lens at all (a swap at the same image size):
+  the same comparison, over the first judged frames after a restart.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ Array = NDArray[np.float64]
 class ZoomVerdict(enum.Enum):
     """The zoom gate's verdict on a frame's homography."""
 
-    PASS = "pass"  # consistent, or not judged
+    PASS = "pass"  # not judged
+    AGREE = "agree"  # judged, and consistent
     HOLD = "hold"  # the frame keeps its K, its keyframe stays out of the solve
     REFUSE = "refuse"  # a wrong homography: no K through it, never a keyframe of the solve
 
@@ -92,6 +95,28 @@ class ZoomGate:
     def frame_done(self, zoom: float) -> None:
         self._previous_zoom = float(zoom)
 
+    @property
+    def previous_zoom(self) -> float:
+        return self._previous_zoom
+
+
+def still_zoom_prediction(
+    table: ZoomTable | None, zoom: float, previous_zoom: float, config: SessionConfig
+) -> tuple[float, float] | None:
+    """The zoom model's f and relative 1-sigma at this zoom encoder, or None where a frame's f cannot
+    be judged against it: outside the model's learned zoom range (it extrapolates there), or while the
+    encoder says the zoom moves (the encoder can lag the image)."""
+    zooms = np.array([zoom, previous_zoom])
+    if table is None or not np.all(np.isfinite(zooms)):
+        return None
+    z = table.zoom
+    if not (z[0] <= zooms.min() and zooms.max() <= z[-1]):
+        return None
+    f_pred = np.interp(zooms, z, table.f)
+    if abs(math.log(f_pred[0] / f_pred[1])) > config.zoom_gate_still:
+        return None
+    return float(f_pred[0]), float(np.interp(zoom, z, table.sigma_f) / f_pred[0])
+
 
 def zoom_gate(
     table: ZoomTable | None,
@@ -101,27 +126,58 @@ def zoom_gate(
     previous_f: float,
     config: SessionConfig,
 ) -> ZoomVerdict:
-    """A frame's f from its homography against the zoom model at its zoom encoder.
-
-    Judged only inside the model's learned zoom range (outside it the model extrapolates) and while
-    the encoder says the zoom is still: while zooming the encoder can lag the image. HOLD when the
-    image zoomed by more than half the floor since the previous frame all the same (a lagging or held
-    encoder at the start of a fast zoom, or a wrong homography), REFUSE when f disagrees with the model.
+    """A frame's f from its homography against the zoom model at its zoom encoder (judged where
+    `still_zoom_prediction` can). HOLD when the image zoomed by more than half the floor since the
+    previous frame all the same (a lagging or held encoder at the start of a fast zoom, or a wrong
+    homography), REFUSE when f disagrees with the model.
     """
-    zooms = np.array([zoom, previous_zoom])
-    if table is None or not np.all(np.isfinite(zooms)):
+    predicted = still_zoom_prediction(table, zoom, previous_zoom, config)
+    if predicted is None:
         return ZoomVerdict.PASS
-    z = table.zoom
-    if not (z[0] <= zooms.min() and zooms.max() <= z[-1]):
-        return ZoomVerdict.PASS
-    f_pred = np.interp(zooms, z, table.f)
     c = config
-    if abs(math.log(f_pred[0] / f_pred[1])) > c.zoom_gate_still:
-        return ZoomVerdict.PASS
     if not math.isfinite(previous_f) or abs(math.log(f / previous_f)) > 0.5 * c.zoom_gate_floor:
         return ZoomVerdict.HOLD
-    relative = float(np.interp(zoom, z, table.sigma_f) / f_pred[0])
-    f_pred0 = float(f_pred[0])
-    if focal_disagrees(float(f), f_pred0, f_pred0, relative, c.zoom_gate_sigmas, c.zoom_gate_floor):
+    f_pred, relative = predicted
+    if focal_disagrees(float(f), f_pred, f_pred, relative, c.zoom_gate_sigmas, c.zoom_gate_floor):
         return ZoomVerdict.REFUSE
-    return ZoomVerdict.PASS
+    return ZoomVerdict.AGREE
+
+
+class RestoredStateCheck:
+    """Whether a restored state is of this camera and lens: a lens swapped at the same image size.
+
+    The first `FRAMES` frames judged after a restart (a calibrated f from the homography, eq. 20, at a
+    still zoom inside the saved zoom model's range) are compared with the model as the zoom gate does,
+    with a smaller floor: one frame may have a wrong homography, most of several cannot, so a
+    majority that disagrees means the saved model is of another lens. The verdict is given once."""
+
+    FRAMES = 10
+    SHARE = 0.7  # of the judged frames that disagree: the state is not this lens's
+    FLOOR = 0.03  # in log f: well above a calibrated frame's error, below any real change of lens
+
+    def __init__(self, config: SessionConfig) -> None:
+        self.config = config
+        self._ratios: list[float] = []  # f / predicted f of the judged frames
+        self._disagree = 0
+        self.done = False
+
+    def judge(self, table: ZoomTable | None, zoom: float, previous_zoom: float, f: float) -> str | None:
+        """Why the restored state does not fit (a sentence), once the verdict is in; else None."""
+        predicted = None if self.done else still_zoom_prediction(table, zoom, previous_zoom, self.config)
+        if predicted is None or not (math.isfinite(f) and f > 0.0):
+            return None
+        f_pred, relative = predicted
+        self._ratios.append(f / f_pred)
+        self._disagree += focal_disagrees(
+            f, f_pred, f_pred, relative, self.config.zoom_gate_sigmas, self.FLOOR
+        )
+        if len(self._ratios) < self.FRAMES:
+            return None
+        self.done = True
+        if self._disagree < self.SHARE * len(self._ratios):
+            return None
+        ratio = float(np.median(self._ratios))
+        return (
+            f"{self._disagree} of the first {len(self._ratios)} frames judged disagree with the saved "
+            f"zoom model, their focal lengths {100 * (ratio - 1):+.1f} % from its f at their zoom (median)"
+        )

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ptz_selfcal.camera.geometry import rotation_from_homography
+from ptz_selfcal.camera.geometry import image_motion, rotation_from_homography
 from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frame_intrinsics import (
@@ -46,7 +46,13 @@ from ptz_selfcal.online.frame_intrinsics import (
     zoom_output,
 )
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
-from ptz_selfcal.online.gates import MotionGate, ZoomGate, ZoomVerdict, usable_homography
+from ptz_selfcal.online.gates import (
+    MotionGate,
+    RestoredStateCheck,
+    ZoomGate,
+    ZoomVerdict,
+    usable_homography,
+)
 from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_calibration import KeyframeCalibration, new_calibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
@@ -71,6 +77,8 @@ Array = NDArray[np.float64]
 _S = CalibrationStatus
 _TRANSFER_ERRORS = (SelfCalibrationError, ValueError, np.linalg.LinAlgError)
 _FLAGGED = (_S.DEGENERATE_MOTION, _S.MODEL_MISMATCH)  # a solve's best estimate, not a calibration
+_USABLE = (ZoomVerdict.PASS, ZoomVerdict.AGREE)  # verdicts that let an ordinary frame join the solve
+_SAME_KEYFRAME = 0.01  # image widths: a saved keyframe re-sent differs by tracking noise, far less
 
 
 _MATCH_WAIT_FRAMES = 8  # more than the frames a lock-step replay keeps in flight
@@ -186,6 +194,8 @@ class CalibratorSession:
         self._startup_prior: SizedK | None = None  # camera_info_url's: the prior again after a reset
         self._restored_size: tuple[int, int] | None = None  # a saved state's images, until a frame comes
         self._stale_state: str | None = None  # why the saved state did not fit the images
+        self._restored_check: RestoredStateCheck | None = None  # a restored lens, until judged
+        self._restored_keyframes: dict[int, Array] = {}  # the saved reference's keyframes, by id
         self._forget_due = False  # a reset whose solving half's part is still to be done
         self._fresh = False  # reset, and no reference since: nothing to save (see `fresh`)
         self.last_zoom = math.nan  # the latest frame's zoom encoder reading
@@ -242,6 +252,15 @@ class CalibratorSession:
             self._frame_dirty = True
             self._fresh = False
         kid = int(frame.keyframe_id)
+        if frame.tracking_state == TrackingState.NEW_KEYFRAME and self._not_saved_keyframe(kid, H):
+            self._counters["reference_changes"] += 1
+            self._new_reference(
+                f"keyframe {kid} of reference {self.reference_id!r} is not the saved one (another "
+                "homography): a tracker that started afresh; calibration restarted (zoom model kept)"
+            )
+            if self._zoom is not None:  # frames judged so far went through the saved reference's K
+                self._restored_check = RestoredStateCheck(self.config)
+            return self._with_homography(frame, H)
         fast = self._motion.fast(self.reference_id, frame.stamp, H, self.image_size)
         snap = self._snapshot
         calibrated = None
@@ -255,6 +274,8 @@ class CalibratorSession:
                     calibrated = (K, R, sigma_f)
             except _TRANSFER_ERRORS as exc:
                 self._warn(f"frame intrinsics failed: {exc}")
+        if calibrated is not None and self._restored_lens_differs(snap, frame, calibrated[0][1, 1]):
+            return self._with_homography(frame, H)  # reset: the frame begins the fresh start
         verdict = ZoomVerdict.PASS
         if calibrated is None:
             self._zoom_gate.no_focal()
@@ -264,7 +285,7 @@ class CalibratorSession:
         self._tracked_against = kid
         if frame.tracking_state == TrackingState.NEW_KEYFRAME and kid not in self._seen_keyframes:
             self._keyframe_added(frame, kid, H, fast, verdict)
-        elif frame.tracking_state == TrackingState.TRACKING and verdict is ZoomVerdict.PASS and not fast:
+        elif frame.tracking_state == TrackingState.TRACKING and verdict in _USABLE and not fast:
             self._propose(frame, H, None if calibrated is None else calibrated[:2])
         if verdict is ZoomVerdict.REFUSE:
             self._counters["zoom_gate_rejections"] += 1
@@ -285,6 +306,33 @@ class CalibratorSession:
         elif status == _S.INITIALISING:
             out.message = initialising_reason(snap, self._counters["fast_motion_keyframes"], self.config)
         return out
+
+    def _not_saved_keyframe(self, kid: int, H: Array) -> bool:
+        """Whether a keyframe the tracker announces under the saved reference's name and a saved id is
+        another image: a tracker without the saved map names its reference and keyframes as the saved
+        ones only by chance (the same first stamp), and its homographies are not of the saved images."""
+        saved = self._restored_keyframes.get(kid)
+        if saved is None or self.image_size is None:
+            return False
+        return image_motion(saved, H, *self.image_size) > _SAME_KEYFRAME
+
+    def _restored_lens_differs(self, snap: CalibrationSnapshot | None, frame: FrameInput, f: float) -> bool:
+        """Whether the restored state proved to be of another lens (a swap at the same image size):
+        then the session has started fresh, with a warning."""
+        check = self._restored_check
+        if check is None or snap is None:
+            return False
+        why = check.judge(snap.zoom_table, float(frame.zoom), self._zoom_gate.previous_zoom, float(f))
+        if check.done:
+            self._restored_check = None
+        if why is None:
+            return False
+        self._stale_state = (
+            f"the saved calibration state does not fit these images: {why} "
+            "(a swapped camera or lens?): starting fresh"
+        )
+        self.reset(self._stale_state)
+        return True
 
     def _keyframe_added(
         self, frame: FrameInput, kid: int, H: Array, fast: bool, verdict: ZoomVerdict
@@ -514,6 +562,7 @@ class CalibratorSession:
         self._motion.forget()
         self._last_proposal = -math.inf
         self._tracked_against = None
+        self._restored_keyframes = {}
         self._pending.clear()
         self._selector.forget()
 
@@ -546,6 +595,7 @@ class CalibratorSession:
         self._given_prior = self._startup_prior
         self._prior = None
         self._restored_size = None
+        self._restored_check = None
         self._frame_dirty = False
         self._forget_due = True
         self._fresh = True
@@ -639,6 +689,10 @@ class CalibratorSession:
             messages.append(f"WARNING: ignoring calibration state {path} ({exc}); starting fresh")
         messages += c.restore_zoom_model(self.state_dir / ZOOM_MODEL_FILE)
         self.accept(c.result())
+        if c.zoom_ready:  # the first frames judged against its zoom model tell whether it is this lens
+            self._restored_check = RestoredStateCheck(self.config)
+        if self._snapshot is not None:
+            self._restored_keyframes = {k: v[0].copy() for k, v in self._snapshot.keyframes.items()}
         return messages
 
     # ---- diagnostics -----------------------------------------------------------------------------
