@@ -142,3 +142,27 @@ def test_a_saved_state_of_the_same_lens_is_kept(tmp_path: Path) -> None:
     for out in outs:
         assert out.status in CALIBRATED, out
         assert abs(out.K[1, 1] / 1500.0 - 1.0) < 0.01, out.K
+
+
+def test_a_fresh_tracker_under_the_saved_reference_name_restarts_the_calibration(tmp_path: Path) -> None:
+    """A tracker without the saved map that names its reference and keyframes as the saved ones (the same
+    first stamp): a saved keyframe id re-announced with the saved homography changes nothing, with
+    another homography it restarts the calibration on the tracker's reference, and the frames are judged
+    against the saved zoom model again."""
+    _, H, f = converged(tmp_path)
+    session = CalibratorSession(SessionConfig(nominal_hfov_deg=50.0), state_dir=tmp_path)
+    session.restore()
+    saved = session.snapshot.keyframes
+    kid = next(k for k in sorted(saved) if k > 0)
+    again = FrameInput(
+        50.0, saved[kid][0], TrackingState.NEW_KEYFRAME, WIDTH, HEIGHT, kid, "ref", float(f[kid])
+    )
+    assert session.process(again).status in CALIBRATED
+    assert session.counters["reference_changes"] == 0
+    other = FrameInput(
+        51.0, H[kid + 3], TrackingState.NEW_KEYFRAME, WIDTH, HEIGHT, kid, "ref", float(f[kid + 3])
+    )
+    out = session.process(other)
+    assert session.counters["reference_changes"] == 1 and out.status == CalibrationStatus.INITIALISING
+    assert any("is not the saved one" in w for w in session.take_warnings())
+    assert session.take_stale_state() is None and session.calibration.zoom_model.sample_count > 0
