@@ -2,14 +2,19 @@
 the test (1920x1080 JPEG at 60 frames/s for 12 s, then a 300 frames/s burst for 3 s, latest-wins queues,
 working width 640) run --repeats times, each run printing the publisher's achieved rate, the share of
 frames calibrated and the latency (image sent -> its CameraInfo) p50/p95/max of both phases, and the
-shed-frame estimate of frame_ingest against the frames really shed before it.
+shed-frame estimate of frame_ingest against the frames really shed before it. Each run is repeated for
+every frame_ingest max_frames_in_flight of --in-flight (0: no shedding before decoding, the tracker's
+latest-wins queue sheds decoded frames), interleaved, and prints where frames were shed (before ingest,
+by ingest undecoded, by the tracker) and the CPU time of frame_ingest and the tracker per frame sent,
+with the load average.
 
-    ros2_ws/venv/bin/python benchmarks/overload_burst.py [--repeats 5] [--seconds 12]
+    ros2_ws/venv/bin/python benchmarks/overload_burst.py [--repeats 5] [--seconds 12] [--in-flight 0,2]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -30,20 +35,41 @@ def counters(feeder: rh.Feeder) -> tuple[int, int]:
     return int(ingest["frames_in"]), int(ingest.get("input_frames_missing_estimate", 0))
 
 
-def run_once(domain: Domain, work: Path, seconds: float) -> list[str]:
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a process (/proc/PID/stat), seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def where_shed(feeder: rh.Feeder, pids: dict[str, int], cpu0: dict[str, float], sent: int) -> str:
+    ingest, tracker = feeder.diagnostics["frame_ingest"], feeder.diagnostics["homography_tracker"]
+    cpu = {
+        n: 1e3 * (cpu_seconds(pids[n]) - cpu0[n]) / max(1, sent)
+        for n in ("frame_ingest", "homography_tracker")
+    }
+    return (
+        f"    shed by frame_ingest undecoded {ingest.get('skipped_tracker_behind', 0)}, by the tracker "
+        f"{tracker.get('frames_dropped', 0)} (both phases); CPU ms per frame sent: frame_ingest "
+        f"{cpu['frame_ingest']:.2f}, tracker {cpu['homography_tracker']:.2f}; load average "
+        f"{os.getloadavg()[0]:.1f}"
+    )
+
+
+def run_once(domain: Domain, work: Path, seconds: float, in_flight: int) -> list[str]:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     latest = ("queue_policy:=latest", "queue_depth:=1")
+    ingest = (*latest, "sensor_reliability:=best_effort", f"max_frames_in_flight:={in_flight}")
     with (
         domain() as env,
-        graph(env, work, ingest=(*latest, "sensor_reliability:=best_effort"), tracker=latest,
-              working_width=640) as nodes,
+        graph(env, work, ingest=ingest, tracker=latest, working_width=640) as nodes,
     ):  # fmt: skip
         qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
         feeder = rh.Feeder("bench_overload_burst", sensor_qos=qos)
         try:
             feeder.wait_connected(compressed=True)
             pids = {n: p.pid for n, p in nodes.items()}
+            cpu0 = {n: cpu_seconds(pid) for n, pid in pids.items()}
             r = rh.overload_scenario(feeder, pids, seconds)
             feeder.spin(1.0)
             taken, estimate = counters(feeder)
@@ -53,6 +79,7 @@ def run_once(domain: Domain, work: Path, seconds: float) -> list[str]:
             taken_2, estimate_2 = counters(feeder)
             shed = burst["sent"] - (taken_2 - taken)
             lines.append(phase_line("300 fps", burst, shed, estimate_2 - estimate))
+            lines.append(where_shed(feeder, pids, cpu0, r["sent"] + burst["sent"]))
             return lines
         finally:
             feeder.close()
@@ -62,13 +89,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=12.0)
+    ap.add_argument(
+        "--in-flight", default="0,2", help="frame_ingest max_frames_in_flight values, comma-separated"
+    )
     args = ap.parse_args()
+    values = [int(v) for v in args.in_flight.split(",") if v.strip()]
     domain = Domain(first=200)
     with tempfile.TemporaryDirectory(prefix="overload_burst_") as tmp:
         for i in range(args.repeats):
-            print(f"run {i + 1} of {args.repeats}", flush=True)
-            for line in run_once(domain, Path(tmp), args.seconds):
-                print(line, flush=True)
+            for value in values:
+                print(f"run {i + 1} of {args.repeats}, max_frames_in_flight {value}", flush=True)
+                for line in run_once(domain, Path(tmp), args.seconds, value):
+                    print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -381,3 +381,63 @@ def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_en
     finally:
         h.close()
     assert proc.stop() == 0
+
+
+def test_images_are_shed_before_decoding_while_the_tracker_is_behind(ros_env, start_process) -> None:
+    """queue_policy latest: with max_frames_in_flight frames on frame_in unanswered (no homography of
+    their stamp yet), a new image is shed before it is decoded (skipped_tracker_behind, no decode time
+    counted); an answer frees its frame and every older one; with nobody publishing homographies every
+    image goes out. The test answers in the tracker's place, so that "behind" is its choice, not the
+    machine's load."""
+    from ptz_selfcal import topics
+    from ptz_selfcal.nodes.runtime import reliable_qos
+    from ptz_selfcal_msgs.msg import HomographyStamped
+
+    proc = start_process(
+        node_command(
+            MODULE, "-p", "working_width:=160", "-p", "diagnostics_period:=0.2", "-p", "queue_policy:=latest",
+            "-p", "sensor_reliability:=reliable", "-p", "encoder_wait:=0.0", "-p", "max_frames_in_flight:=2",
+            "-p", "in_flight_timeout:=30.0",
+        ),
+        ros_env,
+        "frame_ingest_in_flight",
+    )  # fmt: skip
+    h = Harness()
+    answers = h.node.create_publisher(HomographyStamped, topics.HOMOGRAPHY, reliable_qos(10))
+    bgr = scene(20)
+    t = [400.0]
+
+    def send(count: int) -> None:
+        for _ in range(count):
+            h.joints.publish(joint_msg(t[0], true_encoders(t[0])))
+            h.raw.publish(image_msg(t[0], bgr, "bgr8"))
+            t[0] += 0.04
+            h.spin(0.05)
+
+    def counters() -> dict[str, str]:
+        h.diagnostics.clear()
+        assert h.spin(5.0, lambda: bool(h.diagnostics)), "no diagnostics"
+        return h.diagnostics[-1]
+
+    try:
+        h.wait_connected(compressed=False)
+        assert h.spin(10.0, lambda: answers.get_subscription_count() > 0), "frame_ingest takes no answers"
+        send(6)  # nothing answered: 2 go out, 4 are shed undecoded
+        assert h.spin(3.0, lambda: len(h.frames) >= 2) and not h.spin(1.0, lambda: len(h.frames) > 2)
+        c = counters()
+        assert c.get("skipped_tracker_behind") == "4" and c["frames_out"] == "2", c
+        answer = HomographyStamped()
+        answer.header = h.frames[-1].header  # the second frame: both are answered
+        answers.publish(answer)
+        h.spin(0.5)
+        send(3)  # room for 2 again
+        assert h.spin(3.0, lambda: len(h.frames) >= 4) and not h.spin(1.0, lambda: len(h.frames) > 4)
+        assert counters().get("skipped_tracker_behind") == "5"
+        h.node.destroy_publisher(answers)  # no tracker answering: every image goes out
+        h.spin(1.0)
+        send(4)
+        assert h.spin(5.0, lambda: len(h.frames) >= 8), len(h.frames)
+        assert counters().get("skipped_tracker_behind") == "5"
+    finally:
+        h.close()
+    assert proc.stop() == 0

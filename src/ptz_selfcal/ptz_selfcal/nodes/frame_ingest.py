@@ -67,7 +67,8 @@ from ptz_selfcal.nodes.runtime import (
     run_node,
     set_level,
 )
-from ptz_selfcal_msgs.msg import IngestedFrame
+from ptz_selfcal.tools.bagio import header_stamp_ns
+from ptz_selfcal_msgs.msg import HomographyStamped, IngestedFrame
 
 PARAMS = [
     Param(
@@ -99,6 +100,21 @@ PARAMS = [
         "slow stage sheds frames (counted downstream from gaps in seq); lossless: queue every frame "
         "(KEEP_ALL, for replays that wait for each result)",
         one_of("lossless", "latest"),
+    ),
+    Param(
+        "max_frames_in_flight",
+        2,
+        "queue_policy latest: an image that arrives while this many frames published on frame_in have no "
+        "homography yet (the tracker is behind) is shed before it is decoded (counted: "
+        "skipped_tracker_behind); a frame unanswered for in_flight_timeout s stops counting. 0: never",
+        in_range(0, 1000),
+    ),
+    Param(
+        "in_flight_timeout",
+        1.0,
+        "s after which a frame published on frame_in without a homography no longer counts as in flight "
+        "(the tracker shed or lost it, or restarted)",
+        in_range(0.01, 60.0),
     ),
     Param(
         "queue_depth",
@@ -227,6 +243,28 @@ _MAX_HEADER_BYTES = 65536  # serialized header, frame_id, encoding/format: more 
 
 _MAX_DRAIN = 1000  # encoder messages taken at once (bounds one callback's time)
 _NO_ZOOM = "(no zoom encoder)"
+
+
+class InFlight:
+    """Frames published on frame_in that the tracker has not answered yet (a homography of their stamp or
+    a later one: stamps rise, and the tracker answers in order): how far behind it is. A frame unanswered
+    for `timeout` s stops counting: the tracker shed or lost it, or restarted."""
+
+    def __init__(self, timeout: float) -> None:
+        self.timeout = timeout
+        self._sent: deque[tuple[int, float]] = deque()  # (stamp ns, monotonic time published)
+
+    def sent(self, stamp_ns: int, now: float) -> None:
+        self._sent.append((stamp_ns, now))
+
+    def answered(self, stamp_ns: int) -> None:
+        while self._sent and self._sent[0][0] <= stamp_ns:
+            self._sent.popleft()
+
+    def count(self, now: float) -> int:
+        while self._sent and now - self._sent[0][1] > self.timeout:
+            self._sent.popleft()
+        return len(self._sent)
 
 
 def _take(subscription: Any) -> Any:
@@ -363,6 +401,19 @@ class FrameIngest(Node):
             encoder_qos,
             qos_overriding_options=qos_overrides(),
         )
+        # latest: the tracker's answers tell how far behind it is, so that an image it could not take in
+        # time is shed here, before decoding, rather than decoded and then dropped from its queue
+        self._in_flight: InFlight | None = None
+        self._answers = None
+        if p["queue_policy"] == "latest" and p["max_frames_in_flight"] > 0:
+            self._in_flight = InFlight(p["in_flight_timeout"])
+            self._answers = self.create_subscription(
+                HomographyStamped,
+                topics.HOMOGRAPHY,
+                self._on_answer,
+                QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT),
+                raw=True,
+            )
         self._image_watch = InputWatch("images", p["stale_timeout"])
         self._encoder_watch = InputWatch("encoder messages", p["stale_timeout"])
         self._bad_images = FailureRun()
@@ -456,6 +507,13 @@ class FrameIngest(Node):
             self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} was already ingested")
             return
         self._note_interval(stamp_ns * 1e-9)
+        if self._tracker_behind():
+            self._skip(
+                "tracker_behind",
+                f"{self._p['max_frames_in_flight']} frames on frame_in have no homography yet: shed before "
+                "decoding (the tracker is slower than the images; logged once, counted)",
+            )
+            return
         start = time.perf_counter()
         try:
             frame = convert()
@@ -477,6 +535,19 @@ class FrameIngest(Node):
         self._newest_image_time = t
         self._pending.append(_Pending(frame, header, time.monotonic(), data, compressed))
         self._flush_pending()
+
+    def _tracker_behind(self) -> bool:
+        """Whether max_frames_in_flight frames wait for the tracker (only while one answers at all: with
+        no homography publisher every frame goes out, as without this check)."""
+        flight = self._in_flight
+        if flight is None or flight.count(time.monotonic()) < self._p["max_frames_in_flight"]:
+            return False
+        return self._answers is not None and self._answers.get_publisher_count() > 0
+
+    def _on_answer(self, raw: bytes) -> None:
+        stamp = header_stamp_ns(raw)
+        if stamp is not None and self._in_flight is not None:
+            self._in_flight.answered(stamp)
 
     def _note_interval(self, t: float) -> None:
         """Estimate images that never reached this node (shed by a latest-wins queue, lost by a best-effort
@@ -638,6 +709,8 @@ class FrameIngest(Node):
         self._seq += 1
         self._pub.publish(msg)
         self._counts["frames_out"] += 1
+        if self._in_flight is not None:
+            self._in_flight.sent(stamp_to_ns(item.header.stamp), time.monotonic())
         relay = self._relays.get(item.compressed)
         # only while subscribed: without readers the writer would still copy every full-resolution image
         if relay is not None and item.raw is not None and relay.get_subscription_count() > 0:
