@@ -385,10 +385,11 @@ def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_en
 
 def test_images_are_shed_before_decoding_while_the_tracker_is_behind(ros_env, start_process) -> None:
     """queue_policy latest: with max_frames_in_flight frames on frame_in unanswered (no homography of
-    their stamp yet), a new image is shed before it is decoded (skipped_tracker_behind, no decode time
-    counted); an answer frees its frame and every older one; with nobody publishing homographies every
-    image goes out. The test answers in the tracker's place, so that "behind" is its choice, not the
-    machine's load."""
+    their stamp yet), the newest image waits unconverted and a newer one replaces it, the replaced one
+    shed before decoding (skipped_tracker_behind): latest wins, as in the tracker's own queue. An answer
+    frees its frame and every older one, and the waiting image goes out; with nobody publishing
+    homographies every image goes out, the waiting one first. The test answers in the tracker's place,
+    so that "behind" is its choice, not the machine's load."""
     from ptz_selfcal import topics
     from ptz_selfcal.nodes.runtime import reliable_qos
     from ptz_selfcal_msgs.msg import HomographyStamped
@@ -422,22 +423,25 @@ def test_images_are_shed_before_decoding_while_the_tracker_is_behind(ros_env, st
     try:
         h.wait_connected(compressed=False)
         assert h.spin(10.0, lambda: answers.get_subscription_count() > 0), "frame_ingest takes no answers"
-        send(6)  # nothing answered: 2 go out, 4 are shed undecoded
+        sent = [400.0 + 0.04 * k for k in range(13)]
+        send(6)  # nothing answered: 2 go out, the 6th waits, the 3rd to 5th were shed undecoded
         assert h.spin(3.0, lambda: len(h.frames) >= 2) and not h.spin(1.0, lambda: len(h.frames) > 2)
         c = counters()
-        assert c.get("skipped_tracker_behind") == "4" and c["frames_out"] == "2", c
+        assert c.get("skipped_tracker_behind") == "3" and c["frames_out"] == "2", c
         answer = HomographyStamped()
         answer.header = h.frames[-1].header  # the second frame: both are answered
         answers.publish(answer)
-        h.spin(0.5)
-        send(3)  # room for 2 again
-        assert h.spin(3.0, lambda: len(h.frames) >= 4) and not h.spin(1.0, lambda: len(h.frames) > 4)
-        assert counters().get("skipped_tracker_behind") == "5"
-        h.node.destroy_publisher(answers)  # no tracker answering: every image goes out
+        assert h.spin(3.0, lambda: len(h.frames) >= 3), "the waiting image did not go out"
+        send(3)  # the 7th goes out (2 in flight again), the 8th waits and is replaced by the 9th
+        assert not h.spin(1.0, lambda: len(h.frames) > 4)
+        assert counters().get("skipped_tracker_behind") == "4"
+        h.node.destroy_publisher(answers)  # no tracker answering: every image goes out, the 9th first
         h.spin(1.0)
         send(4)
-        assert h.spin(5.0, lambda: len(h.frames) >= 8), len(h.frames)
-        assert counters().get("skipped_tracker_behind") == "5"
+        assert h.spin(5.0, lambda: len(h.frames) >= 9), len(h.frames)
+        assert counters().get("skipped_tracker_behind") == "4"
+        got = [f.header.stamp.sec + 1e-9 * f.header.stamp.nanosec for f in h.frames]
+        np.testing.assert_allclose(got, [sent[k] for k in (0, 1, 5, 6, 8, 9, 10, 11, 12)], atol=1e-6)
     finally:
         h.close()
     assert proc.stop() == 0

@@ -104,9 +104,10 @@ PARAMS = [
     Param(
         "max_frames_in_flight",
         2,
-        "queue_policy latest: an image that arrives while this many frames published on frame_in have no "
-        "homography yet (the tracker is behind) is shed before it is decoded (counted: "
-        "skipped_tracker_behind); a frame unanswered for in_flight_timeout s stops counting. 0: never",
+        "queue_policy latest: while this many frames published on frame_in have no homography yet (the "
+        "tracker is behind), the newest image waits undecoded for the tracker's next answer and a newer "
+        "one replaces it (the replaced one is shed before decoding, counted: skipped_tracker_behind); a "
+        "frame unanswered for in_flight_timeout s stops counting. 0: never",
         in_range(0, 1000),
     ),
     Param(
@@ -404,6 +405,7 @@ class FrameIngest(Node):
         # latest: the tracker's answers tell how far behind it is, so that an image it could not take in
         # time is shed here, before decoding, rather than decoded and then dropped from its queue
         self._in_flight: InFlight | None = None
+        self._held: tuple[Any, Any, bytes, bool] | None = None  # the newest image, waiting for the tracker
         self._answers = None
         if p["queue_policy"] == "latest" and p["max_frames_in_flight"] > 0:
             self._in_flight = InFlight(p["in_flight_timeout"])
@@ -506,14 +508,32 @@ class FrameIngest(Node):
         if stamp_ns in self._recent_stamps:
             self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} was already ingested")
             return
-        self._note_interval(stamp_ns * 1e-9)
-        if self._tracker_behind():
-            self._skip(
-                "tracker_behind",
-                f"{self._p['max_frames_in_flight']} frames on frame_in have no homography yet: shed before "
-                "decoding (the tracker is slower than the images; logged once, counted)",
-            )
+        held = self._held
+        if held is not None and stamp_to_ns(_header_of(held[0]).stamp) == stamp_ns:
+            self._skip("duplicate_stamp", f"a frame with stamp {stamp_ns * 1e-9:.6f} is already waiting")
             return
+        self._note_interval(stamp_ns * 1e-9)
+        if self._tracker_behind():  # latest wins: the newest waits undecoded, an older waiting one is shed
+            if held is not None:
+                self._shed_held()
+            self._held = (msg, convert, data, compressed)
+            return
+        if held is not None:  # the tracker caught up (or stopped answering): the waiting one goes first
+            self._held = None
+            self._convert(*held)
+        self._convert(msg, convert, data, compressed)
+
+    def _shed_held(self) -> None:
+        self._held = None
+        self._skip(
+            "tracker_behind",
+            f"{self._p['max_frames_in_flight']} frames on frame_in had no homography yet and a newer image "
+            "came: shed before decoding (the tracker is slower than the images; logged once, counted)",
+        )
+
+    def _convert(self, msg: Any, convert: Any, data: bytes, compressed: bool) -> None:
+        header = _header_of(msg)
+        stamp_ns = stamp_to_ns(header.stamp)
         start = time.perf_counter()
         try:
             frame = convert()
@@ -548,6 +568,9 @@ class FrameIngest(Node):
         stamp = header_stamp_ns(raw)
         if stamp is not None and self._in_flight is not None:
             self._in_flight.answered(stamp)
+        if self._held is not None and not self._tracker_behind():
+            held, self._held = self._held, None
+            self._convert(*held)
 
     def _note_interval(self, t: float) -> None:
         """Estimate images that never reached this node (shed by a latest-wins queue, lost by a best-effort
