@@ -3,12 +3,12 @@ the test (1920x1080 JPEG at 60 frames/s for 12 s, then a 300 frames/s burst for 
 working width 640) run --repeats times, each run printing the publisher's achieved rate, the share of
 frames calibrated and the latency (image sent -> its CameraInfo) p50/p95/max of both phases, and the
 shed-frame estimate of frame_ingest against the frames really shed before it. Each run is repeated for
-every frame_ingest max_frames_in_flight of --in-flight (0: no shedding before decoding, the tracker's
-latest-wins queue sheds decoded frames), interleaved, and prints where frames were shed (before ingest,
+frame_ingest shed_before_decoding true and false (false: the tracker's latest-wins queue sheds decoded
+frames), interleaved, and prints where frames were shed (before ingest,
 by ingest undecoded, by the tracker) and the CPU time of frame_ingest and the tracker per frame sent,
 with the load average.
 
-    ros2_ws/venv/bin/python benchmarks/overload_burst.py [--repeats 5] [--seconds 12] [--in-flight 0,2]
+    ros2_ws/venv/bin/python benchmarks/overload_burst.py [--repeats 5] [--seconds 12] [--only-shed|--no-shed]
 """
 
 from __future__ import annotations
@@ -55,11 +55,11 @@ def where_shed(feeder: rh.Feeder, pids: dict[str, int], cpu0: dict[str, float], 
     )
 
 
-def run_once(domain: Domain, work: Path, seconds: float, in_flight: int) -> list[str]:
+def run_once(domain: Domain, work: Path, seconds: float, shed: bool) -> list[str]:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     latest = ("queue_policy:=latest", "queue_depth:=1")
-    ingest = (*latest, "sensor_reliability:=best_effort", f"max_frames_in_flight:={in_flight}")
+    ingest = (*latest, "sensor_reliability:=best_effort", f"shed_before_decoding:={str(shed).lower()}")
     with (
         domain() as env,
         graph(env, work, ingest=ingest, tracker=latest, working_width=640) as nodes,
@@ -89,16 +89,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=12.0)
-    ap.add_argument(
-        "--in-flight", default="0,2", help="frame_ingest max_frames_in_flight values, comma-separated"
-    )
+    ap.add_argument("--only-shed", action="store_true", help="only shed_before_decoding true")
+    ap.add_argument("--no-shed", action="store_true", help="only shed_before_decoding false")
     args = ap.parse_args()
-    values = [int(v) for v in args.in_flight.split(",") if v.strip()]
+    values = [True] if args.only_shed else [False] if args.no_shed else [False, True]
     domain = Domain(first=200)
     with tempfile.TemporaryDirectory(prefix="overload_burst_") as tmp:
         for i in range(args.repeats):
             for value in values:
-                print(f"run {i + 1} of {args.repeats}, max_frames_in_flight {value}", flush=True)
+                print(f"run {i + 1} of {args.repeats}, shed_before_decoding {str(value).lower()}", flush=True)
                 for line in run_once(domain, Path(tmp), args.seconds, value):
                     print(line, flush=True)
 

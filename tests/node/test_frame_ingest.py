@@ -384,12 +384,12 @@ def test_encoder_backlog_is_taken_at_once_so_frames_do_not_wait_behind_it(ros_en
 
 
 def test_images_are_shed_before_decoding_while_the_tracker_is_behind(ros_env, start_process) -> None:
-    """queue_policy latest: with max_frames_in_flight frames on frame_in unanswered (no homography of
-    their stamp yet), the newest image waits unconverted and a newer one replaces it, the replaced one
-    shed before decoding (skipped_tracker_behind): latest wins, as in the tracker's own queue. An answer
-    frees its frame and every older one, and the waiting image goes out; with nobody publishing
-    homographies every image goes out, the waiting one first. The test answers in the tracker's place,
-    so that "behind" is its choice, not the machine's load."""
+    """queue_policy latest, queue_depth 1: with 2 frames on frame_in unanswered (no homography of
+    their stamp yet: the tracker's queue of depth 1 is full), the newest image waits unconverted and a
+    newer one replaces it, the replaced one shed before decoding (skipped_tracker_behind): latest wins,
+    as in the tracker's own queue. An answer frees its frame and every older one, and the waiting image
+    goes out; with nobody publishing homographies every image goes out, the waiting one first. The test
+    answers in the tracker's place, so that "behind" is its choice, not the machine's load."""
     from ptz_selfcal import topics
     from ptz_selfcal.nodes.runtime import reliable_qos
     from ptz_selfcal_msgs.msg import HomographyStamped
@@ -397,7 +397,7 @@ def test_images_are_shed_before_decoding_while_the_tracker_is_behind(ros_env, st
     proc = start_process(
         node_command(
             MODULE, "-p", "working_width:=160", "-p", "diagnostics_period:=0.2", "-p", "queue_policy:=latest",
-            "-p", "sensor_reliability:=reliable", "-p", "encoder_wait:=0.0", "-p", "max_frames_in_flight:=2",
+            "-p", "sensor_reliability:=reliable", "-p", "encoder_wait:=0.0", "-p", "queue_depth:=1",
             "-p", "in_flight_timeout:=30.0",
         ),
         ros_env,

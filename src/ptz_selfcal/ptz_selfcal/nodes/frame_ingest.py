@@ -102,13 +102,14 @@ PARAMS = [
         one_of("lossless", "latest"),
     ),
     Param(
-        "max_frames_in_flight",
-        2,
-        "queue_policy latest: while this many frames published on frame_in have no homography yet (the "
-        "tracker is behind), the newest image waits undecoded for the tracker's next answer and a newer "
-        "one replaces it (the replaced one is shed before decoding, counted: skipped_tracker_behind); a "
-        "frame unanswered for in_flight_timeout s stops counting. 0: never",
-        in_range(0, 1000),
+        "shed_before_decoding",
+        True,
+        "queue_policy latest: while queue_depth + 1 frames published on frame_in have no homography yet "
+        "(the tracker's queue of that depth is full, and it works on one), the newest image waits undecoded "
+        "for the tracker's next answer and a newer one replaces it: the frames the tracker's queue would "
+        "drop are shed before decoding (counted: skipped_tracker_behind); a frame unanswered for "
+        "in_flight_timeout s stops counting",
+        None,
     ),
     Param(
         "in_flight_timeout",
@@ -407,7 +408,8 @@ class FrameIngest(Node):
         self._in_flight: InFlight | None = None
         self._held: tuple[Any, Any, bytes, bool] | None = None  # the newest image, waiting for the tracker
         self._answers = None
-        if p["queue_policy"] == "latest" and p["max_frames_in_flight"] > 0:
+        self._max_in_flight = p["queue_depth"] + 1
+        if p["queue_policy"] == "latest" and p["shed_before_decoding"]:
             self._in_flight = InFlight(p["in_flight_timeout"])
             self._answers = self.create_subscription(
                 HomographyStamped,
@@ -527,7 +529,7 @@ class FrameIngest(Node):
         self._held = None
         self._skip(
             "tracker_behind",
-            f"{self._p['max_frames_in_flight']} frames on frame_in had no homography yet and a newer image "
+            f"{self._max_in_flight} frames on frame_in had no homography yet and a newer image "
             "came: shed before decoding (the tracker is slower than the images; logged once, counted)",
         )
 
@@ -557,10 +559,10 @@ class FrameIngest(Node):
         self._flush_pending()
 
     def _tracker_behind(self) -> bool:
-        """Whether max_frames_in_flight frames wait for the tracker (only while one answers at all: with
-        no homography publisher every frame goes out, as without this check)."""
+        """Whether queue_depth + 1 frames wait for the tracker (only while one answers at all: with no
+        homography publisher every frame goes out, as without this check)."""
         flight = self._in_flight
-        if flight is None or flight.count(time.monotonic()) < self._p["max_frames_in_flight"]:
+        if flight is None or flight.count(time.monotonic()) < self._max_in_flight:
             return False
         return self._answers is not None and self._answers.get_publisher_count() > 0
 
