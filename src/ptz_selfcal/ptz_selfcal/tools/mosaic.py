@@ -442,24 +442,26 @@ def still_paths(folder: Path) -> list[Path]:
 def working_stills(
     paths: Sequence[Path], working_width: int, good: list[Path], skipped: Counter, quiet: bool
 ) -> Iterator[tuple[np.ndarray, float]]:
-    """(grey working image, working / full scale) of each readable file, downscaled by the integer
-    factor frame_ingest uses; the readable files are appended to `good`, the others counted in
-    `skipped` and named on stderr."""
-    from ptz_selfcal.nodes.conversions import downscale_factor
+    """(grey working image, working / full scale) of each readable file, decoded and reduced as
+    frame_ingest does a CompressedImage of the same bytes; the readable files are appended to `good`,
+    the others counted in `skipped` and named on stderr."""
+    from types import SimpleNamespace
+
+    from ptz_selfcal.nodes.conversions import FrameError, compressed_to_working
 
     for path in paths:
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None or image.size == 0:
+        fmt = "png" if path.suffix.lower() == ".png" else "jpeg"
+        try:
+            work = compressed_to_working(SimpleNamespace(data=path.read_bytes(), format=fmt), working_width)
+        except (FrameError, OSError) as exc:
             skipped["unreadable"] += 1
             if not quiet:
-                print(f"mosaic: {path.name}: not a readable image, skipped", file=sys.stderr, flush=True)
+                print(
+                    f"mosaic: {path.name}: not a readable image ({exc}), skipped", file=sys.stderr, flush=True
+                )
             continue
         good.append(path)
-        h, w = image.shape
-        k = downscale_factor(w, working_width)
-        if k > 1:
-            image = cv2.resize(image, (w // k, h // k), interpolation=cv2.INTER_AREA)
-        yield image, image.shape[1] / w
+        yield work.image, work.scale
 
 
 def _mosaic_from_images(folder: Path, args: argparse.Namespace) -> int:
