@@ -32,11 +32,14 @@ frames (working images of 640 px, its FrameCalibration and HomographyStamped, ev
 CONVERGED: the steady state, where every frame may enter) played to it at 30 frames/s, three times
 over; its CPU per frame received beyond its idle CPU (target <= 2 ms) and its peak resident memory
 (target <= 200 MB at 8192x4096).
-Real sets (/work/shared/data/rotation_sets, hand-held stills, no ground truth): the fixed-lens pass of
-benchmarks/peers (stills front end + the calibrator session, focal_model constant) and the mosaic of its
-final state, written to --mosaic-dir (never committed: the sets have no licence); its loop-closure
-error is the median angle between the rays of features matched between the last and the first
-still through their estimated K and R (the two ends of the loop), also in % of the circumference.
+Real sets (/work/shared/data/rotation_sets, hand-held stills, no ground truth): what `ptz-selfcal
+mosaic --images DIR` does (tools/mosaic.py: the stills front end and the calibrator session with
+focal_model constant, online/stills_calibration.py; each still through the final solve's K, D and
+adjusted rotation), its mosaic written to --mosaic-dir (never committed: the sets have no licence);
+f against AutoStitch's, the mean rotation between consecutive stills against AutoStitch's, and the
+loop-closure error: the median angle between the rays of features matched between the last and the
+first still through their estimated K, D and R (the two ends of the loop), also in % of the
+circumference.
 Writes benchmarks/results/mosaic.txt (and prints it); the mosaics go to --mosaic-dir (not committed).
 """
 
@@ -50,6 +53,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -486,26 +490,6 @@ REAL_DIR = Path("/work/shared/data/rotation_sets")
 CLOSURE_MIN_INLIERS = 20
 
 
-class StillsSource:
-    """mosaic.blend.FrameSource over a set's colour stills."""
-
-    def __init__(self, paths: list[Path], views: list[FrameView]) -> None:
-        self.paths, self.views = paths, views
-
-    def images(self, reduction: int):
-        for i, path in enumerate(self.paths):
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            if reduction > 1:
-                image = cv2.resize(
-                    cv2.cvtColor(image, cv2.COLOR_BGR2GRAY),
-                    None,
-                    fx=1 / reduction,
-                    fy=1 / reduction,
-                    interpolation=cv2.INTER_AREA,
-                )
-            yield i, image
-
-
 def loop_closure_deg(a: np.ndarray, b: np.ndarray, va: FrameView, vb: FrameView) -> tuple[float, int]:
     """Median angle (deg) between the rays of SIFT features matched between two stills through their
     estimated K and R (RANSAC homography inliers), and the inlier count."""
@@ -528,38 +512,57 @@ def loop_closure_deg(a: np.ndarray, b: np.ndarray, va: FrameView, vb: FrameView)
     return float(np.degrees(np.median(angles))), int(keep.sum())
 
 
+def mean_step_deg(R: np.ndarray) -> float:
+    """Mean rotation angle (deg) between consecutive stills, the last back to the first included."""
+    R = np.asarray(R)
+    return float(np.mean([math.degrees(rotation_angle(R[(k + 1) % len(R)] @ R[k].T)) for k in range(len(R))]))
+
+
 def real_sets_bench(args: argparse.Namespace) -> list[str]:
+    """What `ptz-selfcal mosaic --images DIR` does on each set, and its loop closure."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import peers
 
-    lines = [f"real hand-held rotation sets ({REAL_DIR}; mosaics in {args.mosaic_dir}, never committed):"]
+    from ptz_selfcal.nodes.frame_ingest import PARAMS
+    from ptz_selfcal.nodes.params import CalibratorNodeConfig
+    from ptz_selfcal.online.stills_calibration import calibrate_stills
+
+    working_width = next(int(p.default) for p in PARAMS if p.name == "working_width")
+    lines = [
+        f"real hand-held rotation sets ({REAL_DIR}; mosaics in {args.mosaic_dir}, never committed): "
+        "`ptz-selfcal mosaic --images DIR` (stills front end + calibrator session, focal_model constant, "
+        "shipped defaults; each still through the final solve's K, D and adjusted rotation)"
+    ]
     for name in [n for n in args.real_sets.split(",") if n]:
         folder = REAL_DIR / name
         if not folder.is_dir():
             lines.append(f"  {name}: not found")
             continue
-        seq = peers.load_real_set(name)
+        paths = mosaic_tool.still_paths(folder)
+        good: list[Path] = []
         c0 = time.process_time()
-        rows, _ = peers.run_session(seq, "constant")
-        final = rows[-1]
+        stills = mosaic_tool.working_stills(paths, working_width, good, Counter(), True)
+        cal = calibrate_stills(stills, CalibratorNodeConfig().reoptimise_budget)
         cpu = time.process_time() - c0
-        if not len(final.frame_idx):
-            lines.append(f"  {name}: {len(seq.frames)} stills, no final calibration ({final.note})")
+        if not cal.indices:
+            lines.append(f"  {name}: {len(paths)} stills, no final calibration ({cal.message})")
             continue
-        paths = sorted(folder.glob("*.jpg"))
-        w, h = seq.size
-        views = [FrameView(K, (0.0, 0.0, 0.0), R, w, h) for K, R in zip(final.K, final.R)]
-        chosen = [paths[i] for i in final.frame_idx]
-        result = build_mosaic(StillsSource(chosen, views), max_width=args.max_width)
+        w, h = cal.size
+        D = (float(cal.D[0]), float(cal.D[1]), float(cal.D[4]))
+        views = [FrameView(K, D, R, w, h) for K, R in zip(cal.K, cal.R)]
+        chosen = [good[i] for i in cal.indices]
+        result = build_mosaic(mosaic_tool.StillsFrameSource(chosen, views), max_width=args.max_width)
         cv2.imwrite(str(args.mosaic_dir / f"real_{name}.png"), result.image)
-        first, last = int(final.frame_idx[0]), int(final.frame_idx[-1])
-        closure, inliers = loop_closure_deg(seq.frames[last], seq.frames[first], views[-1], views[0])
-        f = float(final.K[0][0, 0])
-        ref = (
-            f"{100 * (f / seq.f_reference - 1):+.1f} % from AutoStitch's {seq.f_reference:.1f}"
-            if seq.f_reference
-            else "no AutoStitch f"
-        )
+        first, last = cal.indices[0], cal.indices[-1]
+        grey = [cv2.imread(str(good[i]), cv2.IMREAD_GRAYSCALE) for i in (last, first)]
+        closure, inliers = loop_closure_deg(grey[0], grey[1], views[-1], views[0])
+        f = float(cal.K[0][0, 0])
+        f_ref = peers.autostitch_focal(folder)
+        R_ref = peers.autostitch_rotations(folder)
+        ref = f"{100 * (f / f_ref - 1):+.1f} % from AutoStitch's {f_ref:.1f}" if f_ref else "no AutoStitch f"
+        step = f"mean step {mean_step_deg(cal.R):.2f} deg"
+        if R_ref is not None and len(R_ref) == len(paths) == len(cal.indices):
+            step += f" (AutoStitch's {mean_step_deg(R_ref):.2f})"
         text = (
             f"loop closure (still {last} -> still {first}, {inliers} inliers) median {closure:.3f} deg = "
             f"{100 * closure / 360:.3f} % of the circumference"
@@ -567,9 +570,8 @@ def real_sets_bench(args: argparse.Namespace) -> list[str]:
             else f"the last and the first still do not overlap ({inliers} matches): no loop to close"
         )
         lines.append(
-            f"  {name}: {len(final.frame_idx)} of {len(seq.frames)} stills placed, f {f:.1f} px ({ref}); "
-            f"{text}; "
-            f"calibration {cpu:.1f} s CPU"
+            f"  {name}: {len(cal.indices)} of {len(paths)} stills placed ({cal.status}), f {f:.1f} px "
+            f"({ref}), k1 {D[0]:+.3f}; {step}; {text}; calibration {cpu:.1f} s CPU"
         )
     return lines
 

@@ -177,6 +177,16 @@ def autostitch_focal(folder: Path) -> float | None:
     return float(np.mean(focals)) if focals else None
 
 
+def autostitch_rotations(folder: Path) -> Array | None:
+    """AutoStitch's (n, 3, 3) R of each image of autostitch_pano.txt, in file order (None without it)."""
+    path = folder / "autostitch_pano.txt"
+    if not path.exists():
+        return None
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    blocks = range(0, len(lines) - 8, 9)  # as autostitch_focal: rows 5-7 of a block are R
+    return np.array([[[float(x) for x in lines[k + r]] for r in (5, 6, 7)] for k in blocks])
+
+
 # --------------------------------------------------------------------------------------------------
 # Method results
 # --------------------------------------------------------------------------------------------------

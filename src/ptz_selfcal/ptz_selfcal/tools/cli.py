@@ -18,7 +18,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("ptz_selfcal.tools.run", "replay a bag through the real nodes and record every output"),
     "eval": ("ptz_selfcal.tools.eval_command", "run + compare with encoders and ground truth: report, plots"),
     "synth": ("ptz_selfcal.tools.synth", "render a PTZ camera bag from an equirectangular panorama"),
-    "mosaic": ("ptz_selfcal.tools.mosaic", "panoramic mosaic (PNG) of a bag through its calibration"),
+    "mosaic": (
+        "ptz_selfcal.tools.mosaic",
+        "panoramic mosaic (PNG) of a bag, or of a folder of stills, through its calibration",
+    ),
     "export-calibration": (
         "ptz_selfcal.tools.export_calibration",
         "write camera_calibration YAML per zoom setting from a saved zoom model",

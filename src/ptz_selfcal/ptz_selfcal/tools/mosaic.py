@@ -1,4 +1,5 @@
-"""`ptz-selfcal mosaic IN_BAG --out FILE.png [--projection spherical|cylindrical]` (paper section 8).
+"""`ptz-selfcal mosaic IN_BAG --out FILE.png [--projection spherical|cylindrical]` (paper section 8);
+`ptz-selfcal mosaic --images DIR --out FILE.png`: a folder of stills from one fixed lens.
 
 IN_BAG is either an output bag of `ptz-selfcal run` (it holds ptz/selfcal/camera_info and
 ptz/selfcal/frame; the images come from the same bag or from --input-bag) or an input bag (images and
@@ -15,6 +16,12 @@ calibrated every frame is placed). The mosaic is levelled with the encoders pass
 FrameCalibration when there are any (pan 0 at the centre, the horizon level); otherwise its frame is
 the calibration's reference. The width gives one mosaic pixel per image pixel at the longest focal
 length seen, capped by --max-width. The PNG is BGRA: alpha 0 where nothing was seen.
+
+--images DIR: the folder's images in name order (a hand-held set taken in order) go through the
+stills front end and the calibrator session with one focal length (online/stills_calibration.py, at
+the frame_ingest node's working width), and each still is placed through the final solve's K, D and
+its adjusted orientation, in the frame of the first placed still. A file that is not a readable image
+is skipped and counted; a folder without two readable images is an error.
 """
 
 from __future__ import annotations
@@ -58,7 +65,14 @@ PROGRESS_MIN_FRAMES = 50
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("in_bag", help="an output bag of `ptz-selfcal run`, or an input bag (run first)")
+    parser.add_argument(
+        "in_bag", nargs="?", help="an output bag of `ptz-selfcal run`, or an input bag (run first)"
+    )
+    parser.add_argument(
+        "--images",
+        metavar="DIR",
+        help="instead of a bag: a folder of stills from one fixed lens, in name order",
+    )
     parser.add_argument("--out", required=True, metavar="FILE.png", help="mosaic image to write (PNG)")
     parser.add_argument("--projection", choices=KINDS, default=SPHERICAL, help="mosaic surface")
     parser.add_argument("--max-width", type=int, default=8192, help="mosaic width cap (pixels, full turn)")
@@ -373,11 +387,15 @@ def _mosaic_from(output_bag: Path, image_bag: Path, args: argparse.Namespace) ->
 
 
 def run(args: argparse.Namespace) -> int:
-    in_bag = Path(args.in_bag)
     if Path(args.out).suffix.lower() != ".png":
         raise CliError(f"{args.out}: the mosaic is written as PNG (name it .png)")
     if args.max_width < 64:
         raise CliError("--max-width must be at least 64")
+    if (args.in_bag is None) == (args.images is None):
+        raise CliError("give either IN_BAG or --images DIR")
+    if args.images is not None:
+        return _mosaic_from_images(Path(args.images), args)
+    in_bag = Path(args.in_bag)
     if is_output_bag(in_bag):
         image_bag = Path(args.input_bag) if args.input_bag else in_bag
         return _mosaic_from(in_bag, image_bag, args)
@@ -386,6 +404,107 @@ def run(args: argparse.Namespace) -> int:
         extra = ["--deterministic"] if args.deterministic else []
         run_pipeline(in_bag, output_bag, args.params, args.quiet, extra)
         return _mosaic_from(output_bag, in_bag, args)
+
+
+# --------------------------------------------------------------------------------------------------
+# A folder of stills (--images)
+# --------------------------------------------------------------------------------------------------
+# what cv2.imread reads (the name decides which files are tried; the content whether they are images)
+STILL_SUFFIXES = frozenset(
+    (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".pgm", ".ppm", ".pnm")
+)
+
+
+class StillsFrameSource:
+    """mosaic.blend.FrameSource over still image files (views[k] is the view of paths[k])."""
+
+    def __init__(self, paths: Sequence[Path], views: Sequence[FrameView]) -> None:
+        self.paths, self.views = list(paths), list(views)
+
+    def images(self, reduction: int) -> Iterator[tuple[int, np.ndarray]]:
+        for i, path in enumerate(self.paths):
+            flag = _REDUCED.get(reduction, cv2.IMREAD_COLOR) if reduction > 1 else cv2.IMREAD_COLOR
+            image = cv2.imread(str(path), flag)
+            if image is not None:
+                yield i, image
+
+
+def still_paths(folder: Path) -> list[Path]:
+    """The image files of a folder in name order; CliError when it is missing or holds none."""
+    if not folder.is_dir():
+        raise CliError(f"{folder}: no such folder")
+    paths = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in STILL_SUFFIXES)
+    if not paths:
+        raise CliError(f"{folder}: no image files ({', '.join(sorted(STILL_SUFFIXES))})")
+    return paths
+
+
+def working_stills(
+    paths: Sequence[Path], working_width: int, good: list[Path], skipped: Counter, quiet: bool
+) -> Iterator[tuple[np.ndarray, float]]:
+    """(grey working image, working / full scale) of each readable file, decoded and reduced as
+    frame_ingest does a CompressedImage of the same bytes; the readable files are appended to `good`,
+    the others counted in `skipped` and named on stderr."""
+    from types import SimpleNamespace
+
+    from ptz_selfcal.nodes.conversions import FrameError, compressed_to_working
+
+    for path in paths:
+        fmt = "png" if path.suffix.lower() == ".png" else "jpeg"
+        try:
+            work = compressed_to_working(SimpleNamespace(data=path.read_bytes(), format=fmt), working_width)
+        except (FrameError, OSError) as exc:
+            skipped["unreadable"] += 1
+            if not quiet:
+                print(
+                    f"mosaic: {path.name}: not a readable image ({exc}), skipped", file=sys.stderr, flush=True
+                )
+            continue
+        good.append(path)
+        yield work.image, work.scale
+
+
+def _mosaic_from_images(folder: Path, args: argparse.Namespace) -> int:
+    from ptz_selfcal.nodes.frame_ingest import PARAMS
+    from ptz_selfcal.nodes.params import CalibratorNodeConfig
+    from ptz_selfcal.online.stills_calibration import calibrate_stills
+
+    paths = still_paths(folder)
+    working_width = next(int(p.default) for p in PARAMS if p.name == "working_width")
+    good: list[Path] = []
+    skipped: Counter = Counter()
+    report = progress_printer(len(paths), args.quiet)
+    progress = None if report is None else (lambda i: report("calibrating", i + 1, len(paths)))
+    start = time.monotonic()
+    stills = working_stills(paths, working_width, good, skipped, args.quiet)
+    calibration = calibrate_stills(stills, CalibratorNodeConfig().reoptimise_budget, progress=progress)
+    if len(good) < 2:
+        raise CliError(f"{folder}: {len(good)} readable image(s) of {len(paths)}: a mosaic needs two or more")
+    skipped.update(calibration.skipped)
+    if not calibration.indices:
+        raise CliError(
+            f"{folder}: the stills gave no calibration ({calibration.message or calibration.status})"
+        )
+    w, h = calibration.size
+    D = (float(calibration.D[0]), float(calibration.D[1]), float(calibration.D[4]))
+    views = [FrameView(K, D, R, w, h) for K, R in zip(calibration.K, calibration.R)]
+    source = StillsFrameSource([good[i] for i in calibration.indices], views)
+    result = build_mosaic(source, args.projection, args.max_width, report, not args.no_exposure)
+    wall = time.monotonic() - start
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), result.image):
+        raise CliError(f"{out}: cannot write the image")
+    p = result.projection
+    covered = float((result.image[:, :, 3] > 0).mean())
+    text = ", ".join(f"{k} {v}" for k, v in sorted(skipped.items())) or "none"
+    print(
+        f"mosaic: {result.frames} of {len(paths)} stills placed in {wall:.1f} s, skipped: {text}; "
+        f"f {float(calibration.K[0][0, 0]):.1f} px ({calibration.status}); {p.kind} {p.width}x{p.height}, "
+        f"{100 * covered:.1f} % covered, frame of still {paths.index(good[calibration.indices[0]])}; "
+        f"wrote {out}"
+    )
+    return 0
 
 
 # --------------------------------------------------------------------------------------------------
