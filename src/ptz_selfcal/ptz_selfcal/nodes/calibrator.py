@@ -62,6 +62,7 @@ from ptz_selfcal.nodes.runtime import (
     set_level,
 )
 from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
+from ptz_selfcal.nodes.solve_slots import SolveSlots, default_slot_count, default_slot_dir
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.session import CalibratorSession
@@ -120,9 +121,13 @@ class CalibratorNode(Node):
         self._warnings = CountedWarnings(self, self._counts)
         self._last_status: str | None = None
         self._last_frame_stamp_ns = 0
+        slots = None
+        if p["solve_slots"] >= 0:
+            count = p["solve_slots"] or default_slot_count()
+            slots = SolveSlots(p["solve_slots_dir"] or default_slot_dir(), count)
         self._runner = SessionRunner(
             session,
-            RunnerConfig(p["reoptimise_budget"], p["reoptimise_period"], p["save_period"]),
+            RunnerConfig(p["reoptimise_budget"], p["reoptimise_period"], p["save_period"], slots),
             lens=self._lens,
             log=self._log,
         )
@@ -356,6 +361,7 @@ class CalibratorNode(Node):
         # (0: idle; under load it lags the frames, and a test can wait for it instead of guessing a time)
         counters["last_frame_stamp_ns"] = self._last_frame_stamp_ns
         counters["reoptimise_pending"] = self._runner.pending
+        counters["reoptimise_deferred_no_slot"] = self._runner.deferred_steps
         status = DiagnosticStatus()
         status.name = self.get_fully_qualified_name()
         status.hardware_id = self._camera_name

@@ -77,6 +77,18 @@ class CalibratorNodeConfig:
         "child_frame_id of the orientation transform, a frame of this node's own, never one of the "
         "driver's ('': <camera_name>_selfcal_optical)",
     )
+    solve_slots: int = setting(
+        0,
+        "re-optimisations that may run at once on this machine, shared by every suite (camera) on it: "
+        "a worker step waits for a free slot (0: half the machine's cores, at least 1; -1: no "
+        "machine-wide limit; give every suite on a machine the same value)",
+        bounds=(-1, 1024),
+    )
+    solve_slots_dir: str = setting(
+        "",
+        "directory of the machine's solve slot lock files, shared by the suites ('': "
+        "/dev/shm/ptz_selfcal_solve_slots, else the temporary directory's)",
+    )
     inline_solves: bool = setting(
         False,
         "solve in the frame callback before the next frame instead of in the worker (each solve completes "

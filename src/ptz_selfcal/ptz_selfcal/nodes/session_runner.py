@@ -24,6 +24,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from ptz_selfcal.nodes.solve_slots import SolveSlots
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.incremental import IncrementalCalibrator
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver
@@ -45,6 +46,7 @@ class RunnerConfig:
     budget_s: float  # one solve step's time budget
     period_s: float  # how long the worker sleeps when nothing wakes it
     save_period_s: float  # seconds between state saves (when changed)
+    slots: SolveSlots | None = None  # the machine's shared solve slots (None: no machine-wide limit)
 
 
 class SessionView:
@@ -99,6 +101,7 @@ class SessionRunner:
         self._solve = solve or session.calibration.apply  # a test may wrap it
         self.errors = 0
         self.distortion_updates = 0
+        self.deferred_steps = 0  # worker steps deferred: every machine-wide solve slot was held
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._busy = False
@@ -216,7 +219,20 @@ class SessionRunner:
             self._guarded(lambda: self.step(paced=False))
 
     def step(self, paced: bool = True) -> None:
-        """One worker step: take the work, solve outside the lock, hand the result back."""
+        """One worker step, with one of the machine's solve slots when paced (unpaced replays are
+        deterministic and never wait for other processes); deferred, its work kept, when none is free."""
+        slots = self.config.slots
+        if not paced or slots is None:
+            self._step(paced)
+            return
+        with slots.hold() as held:
+            if held:
+                self._step(paced)
+            else:
+                self.deferred_steps += 1
+
+    def _step(self, paced: bool) -> None:
+        """Take the work, solve outside the lock, hand the result back."""
         self._busy = True
         try:
             with self.lock:  # work and requests together: a reset's forgetting precedes its epoch's work

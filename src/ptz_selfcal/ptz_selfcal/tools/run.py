@@ -244,6 +244,9 @@ def run(args: argparse.Namespace) -> int:
         tracker_args = {"queue_policy": "lossless", "wait_for_subscribers": 2}
         # Lock-step results otherwise depend on when the worker's solves land relative to the frames.
         calibrator_args = {"inline_solves": "true"} if args.deterministic else {}
+        # an evaluation is one camera alone: its solves do not wait for other runs' (the machine's slots
+        # are for live suites)
+        calibrator_args["solve_slots_dir"] = str(Path(tmp) / "solve_slots")
         specs = [
             NodeSpec("frame_ingest", NODE_MODULES["frame_ingest"], diag_remap + _overrides(ingest_args)),
             NodeSpec(
