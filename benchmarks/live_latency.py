@@ -20,6 +20,7 @@ times from /diagnostics, and the machine load average. Writes benchmarks/results
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -122,6 +123,8 @@ def measure(
     rate: float,
     extra: list[str],
     nice: int | None = None,
+    namespace: str | None = None,
+    ready: Any = None,
 ) -> Result:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -133,7 +136,7 @@ def measure(
 
     res = Result(policy, depth, nice=nice)
     own_group: int | None = None
-    namespace = f"/live_latency_{os.getpid()}_{policy}"
+    namespace = namespace or f"/live_latency_{os.getpid()}_{policy}"
     params_file, namespace, _ = prepare(None, namespace, [], str(domain_tmp))
     compressed = image_type == "sensor_msgs/msg/CompressedImage"
     diag = ["-r", f"{topics.DIAGNOSTICS}:={namespace}{topics.DIAGNOSTICS}"]
@@ -209,6 +212,8 @@ def measure(
         end = time.monotonic() + 2.0  # let discovery settle on the far ends too
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
+        if ready is not None:  # several cameras (benchmarks/multi_camera.py): start together
+            ready()
 
         done = threading.Event()
 
@@ -272,6 +277,33 @@ def measure(
         node.destroy_node()
         context.try_shutdown()
     return res
+
+
+def _sync_start() -> None:
+    print("READY", flush=True)
+    sys.stdin.readline()
+
+
+def summary(res: Result) -> dict[str, Any]:
+    """The figures benchmarks/multi_camera.py compares across cameras."""
+    import resource
+
+    _, lat = res.latencies()
+    ingest = res.diagnostics.get("frame_ingest", {})
+    tracker = res.diagnostics.get("homography_tracker", {})
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    return {
+        "published": res.published,
+        "calibrated": len(res.info),
+        "p50_ms": pct(lat, 50),
+        "p95_ms": pct(lat, 95),
+        "shed_before_ingest": res.published - int(ingest.get("frames_in", 0) or 0),
+        "shed_by_ingest": int(ingest.get("frames_in", 0) or 0) - int(ingest.get("frames_out", 0) or 0),
+        "shed_by_tracker": int(tracker.get("frames_dropped", 0) or 0),
+        "node_cpu_s": sum(res.cpu.values()),
+        "player_cpu_s": own.ru_utime + own.ru_stime,
+        "wall_s": res.wall,
+    }
 
 
 def pct(values: np.ndarray, q: float) -> float:
@@ -381,6 +413,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--ingest-param", nargs="*", default=[], metavar="NAME:=VALUE", help="extra frame_ingest parameters"
     )
+    parser.add_argument("--namespace", help="the suite's namespace (default: a private one)")
+    parser.add_argument(
+        "--sync", action="store_true", help="print READY when the nodes are up, play after a line on stdin"
+    )
+    parser.add_argument("--json", type=Path, help="also write the last run's figures as JSON")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", "211")
@@ -411,9 +448,12 @@ def main(argv: list[str] | None = None) -> int:
                 sub = Path(tmp) / f"{policy}_{k}"
                 sub.mkdir()
                 res = measure(
-                    messages, image_type, image_topic, policy, args.depth, sub, args.rate, extra, args.nice
-                )
+                    messages, image_type, image_topic, policy, args.depth, sub, args.rate, extra, args.nice,
+                    args.namespace, _sync_start if args.sync else None,
+                )  # fmt: skip
                 report(res, lines)
+                if args.json:
+                    args.json.write_text(json.dumps(summary(res)))
                 print("\n".join(lines[-10:]), flush=True)
     lines.append(f"# load average at the end {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     text = "\n".join(lines) + "\n"
