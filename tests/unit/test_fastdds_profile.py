@@ -43,8 +43,8 @@ def _lease(path: Path) -> tuple[float, float] | None:
 
 def test_the_shipped_profile_carries_raw_images_in_shared_memory_and_a_short_lease():
     """A shared-memory segment that holds several raw 1920x1080 colour images (the default 512 KB does not
-    hold one 1280x720 image), UDPv4 beside it (discovery, other hosts) instead of the built-in pair, and
-    the 2 s lease launch has always given the nodes."""
+    hold one 1280x720 image), UDPv4 beside it (discovery, other hosts) instead of the built-in pair, with
+    a receive buffer for frames from another host, and the 2 s lease launch has always given the nodes."""
     path = default_profile_file()
     assert path.name == "fastdds.xml" and path.parent.name == "config"
     root = ET.parse(path).getroot()
@@ -58,6 +58,9 @@ def test_the_shipped_profile_carries_raw_images_in_shared_memory_and_a_short_lea
     assert set(kinds) == {"SHM", "UDPv4"}
     assert participant.find("f:rtps/f:useBuiltinTransports", NS).text == "false"
     assert int(kinds["SHM"].find("f:segment_size", NS).text) >= 4 * 1920 * 1080 * 3
+    # frames from another host: a burst of working-resolution frames (640x360 mono8) fits the socket's
+    # buffer with the kernel's overhead per fragment (the system default drops, and the drops are re-sent)
+    assert int(kinds["UDPv4"].find("f:receiveBufferSize", NS).text) >= 8 * 640 * 360 * 2
     assert _lease(path) == (2.0, 0.5)
 
 
