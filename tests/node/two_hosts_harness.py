@@ -146,7 +146,10 @@ def enter(netns: str) -> None:
 def unavailable() -> str | None:
     """Why network namespaces cannot be created here, or None when they can."""
     probe = f"ptzprobe{os.getpid()}"
-    result = _ip("netns", "add", probe)
+    try:
+        result = _ip("netns", "add", probe)
+    except OSError as exc:  # no `ip` (iproute2) on this machine
+        return f"cannot create a network namespace ({exc})"
     if result.returncode != 0:
         return f"cannot create a network namespace (ip netns add: {result.stderr.strip()})"
     _ip("netns", "del", probe)
