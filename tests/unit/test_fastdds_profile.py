@@ -96,3 +96,43 @@ def test_no_profile_named_when_the_package_has_none(monkeypatch, tmp_path):
 
     monkeypatch.setattr(launch, "default_profile_file", lambda: tmp_path / "fastdds.xml")
     assert launch.dds_profile_environment(str(tmp_path), None, FAST_DDS) == {}
+
+
+def test_static_peers_become_the_profile_s_unicast_discovery(tmp_path):
+    """LOCALHOST with ROS_STATIC_PEERS (a suite across hosts): a copy of the shipped profile whose
+    discovery is unicast to 127.0.0.1 and the peers (32 participants each, as rmw_fastrtps's LOCALHOST
+    transport), no multicast locator, and the range SYSTEM_DEFAULT so that rmw_fastrtps adds no second
+    UDPv4 transport; the transports and the lease stay the shipped ones."""
+    environ = {
+        **FAST_DDS,
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_STATIC_PEERS": "10.0.0.2; localhost;",
+    }
+    env = dds_profile_environment(str(tmp_path), None, environ)
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT" and env["ROS_STATIC_PEERS"] == ""
+    path = Path(env[PROFILE_VARIABLES[0]])
+    builtin = _participant(path).find("f:rtps/f:builtin", NS)
+    peers = [a.text for a in builtin.findall("f:initialPeersList/f:locator/f:udpv4/f:address", NS)]
+    assert peers == ["127.0.0.1", "10.0.0.2"]  # localhost once
+    (unicast,) = builtin.findall("f:metatrafficUnicastLocatorList/f:locator", NS)
+    assert (
+        unicast.find("f:udpv4", NS) is not None
+        and builtin.find("f:metatrafficMulticastLocatorList", NS) is None
+    )
+    udp = [d for d in ET.parse(path).getroot().iter(f"{{{NS['f']}}}transport_descriptor")
+           if d.find("f:type", NS).text == "UDPv4"]  # fmt: skip
+    assert [d.find("f:maxInitialPeersRange", NS).text for d in udp] == ["32"]
+    shipped = ET.tostring(_participant(default_profile_file()).find("f:rtps/f:userTransports", NS))
+    assert ET.tostring(_participant(path).find("f:rtps/f:userTransports", NS)) == shipped
+    assert _lease(path) == (2.0, 0.5)
+    leased = dds_profile_environment(str(tmp_path), 3.0, environ)
+    assert _lease(Path(leased[PROFILE_VARIABLES[0]])) == (3.0, 0.75)
+    # no peers, another range, or nowhere to write: the shipped file as it is
+    for other in (
+        {**environ, "ROS_STATIC_PEERS": ""},
+        {**environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"},
+    ):
+        assert dds_profile_environment(str(tmp_path), None, other) == {
+            PROFILE_VARIABLES[0]: str(default_profile_file())
+        }
+    assert dds_profile_environment(None, None, environ) == {PROFILE_VARIABLES[0]: str(default_profile_file())}
