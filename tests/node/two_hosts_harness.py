@@ -5,7 +5,8 @@ Each namespace has only its loopback and its end of the link (a private /30, IPv
 sends no multicast of its own on it): nothing in them reaches another machine. The nodes discover each
 other through static peers only: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST with ROS_STATIC_PEERS naming
 both hosts' addresses (one site-wide list, as every box of a deployment would have it). Jazzy's
-rmw_fastrtps then sends discovery by unicast to 127.0.0.1 and to the peers and listens to no multicast;
+rmw_fastrtps then sends discovery by unicast to 127.0.0.1 and to the peers and listens to no multicast
+(launch gives its nodes the same discovery in a copy of the shipped profile: dds_profile_environment);
 OFF would ignore the peers and allow no remote participant at all.
 
 Shared memory: both namespaces see the same /dev/shm, but Fast DDS uses a peer's shared-memory
