@@ -4,7 +4,8 @@ camera-side host and homography_tracker + calibrator on a server, against the sa
 The two hosts are two network namespaces of this benchmark's own joined by a veth pair
 (tests/node/two_hosts_harness.py; removed at the end): discovery by static peers only
 (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, ROS_STATIC_PEERS naming both), shared memory within a host
-only, the shipped Fast DDS profile and parameter defaults (queue policy and depth included). This
+only, the shipped Fast DDS profile as launch gives it to the nodes (with static peers: its copy with
+the peers as discovery, dds_profile_environment) and parameter defaults (queue policy and depth). This
 process is the camera driver: it plays the bag live on the camera-side host and takes the CameraInfo
 back there, so the latency over the link includes both crossings (the frame to the server, its
 CameraInfo back). "One host": the same nodes, frames and rate, all on the camera-side host.
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from ptz_selfcal import topics
     from ptz_selfcal.nodes.frame_ingest import PARAMS
-    from ptz_selfcal.tools.launch import dds_profile_environment
+    from ptz_selfcal.tools.launch import PROFILE_VARIABLES, dds_profile_environment
 
     defaults = {p.name: p.default for p in PARAMS}
     policy, depth = defaults["queue_policy"], defaults["queue_depth"]
@@ -94,22 +95,20 @@ def main(argv: list[str] | None = None) -> int:
         )
         # This process (player and measurement) and every node it starts live on the camera-side host.
         enter(hosts.a.netns)
-        os.environ.update(dds_profile_environment())
-        os.environ.setdefault("ROS_DOMAIN_ID", "61")
-        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        base = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
+        base.setdefault("ROS_DOMAIN_ID", "61")
         settings = {
-            "one host": ({}, {}),
-            "two hosts": (
-                {name: hosts.b.netns for name in SERVER_NODES},
-                {"ROS_STATIC_PEERS": hosts.static_peers},
-            ),
+            "one host": ({}, {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}),
+            "two hosts": ({name: hosts.b.netns for name in SERVER_NODES}, hosts.environment()),
         }
         for k in range(args.repeats):
             for name, (netns, env) in settings.items():
-                os.environ.pop("ROS_STATIC_PEERS", None)
-                os.environ.update(env)
                 sub = Path(tmp) / f"{name.replace(' ', '_')}_{k}"
                 sub.mkdir()
+                # what launch gives its nodes, for this process (the camera driver) and the nodes alike
+                os.environ.clear()
+                os.environ.update({**base, **env})
+                os.environ.update(dds_profile_environment(str(sub)))
                 before = hosts.counters(hosts.b), hosts.udp_receive_errors(hosts.b)
                 res = measure(
                     messages, image_type, image_topic, policy, depth, sub, args.rate, [], args.nice,
