@@ -123,9 +123,12 @@ def measure(
     rate: float,
     extra: list[str],
     nice: int | None = None,
+    supervisor_class: Any = None,
     namespace: str | None = None,
     ready: Any = None,
 ) -> Result:
+    """One live run; `supervisor_class` (launch's Supervisor by default) starts the nodes, e.g. some of
+    them in another network namespace (benchmarks/two_hosts.py)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -147,7 +150,9 @@ def measure(
         NodeSpec("homography_tracker", NODE_MODULES["homography_tracker"], [*diag, *queue]),
         NodeSpec("calibrator", NODE_MODULES["calibrator"], [*diag]),
     ]
-    supervisor = Supervisor(specs, params_file, namespace, echo=False, output=sys.stderr)
+    supervisor = (supervisor_class or Supervisor)(
+        specs, params_file, namespace, echo=False, output=sys.stderr
+    )
 
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
@@ -449,19 +454,24 @@ def main(argv: list[str] | None = None) -> int:
                 sub.mkdir()
                 res = measure(
                     messages, image_type, image_topic, policy, args.depth, sub, args.rate, extra, args.nice,
-                    args.namespace, _sync_start if args.sync else None,
+                    namespace=args.namespace, ready=_sync_start if args.sync else None,
                 )  # fmt: skip
                 report(res, lines)
                 if args.json:
                     args.json.write_text(json.dumps(summary(res)))
                 print("\n".join(lines[-10:]), flush=True)
+    finish(lines, None if args.no_write else args.out)
+    return 0
+
+
+def finish(lines: list[str], out: Path | None) -> None:
+    """The load average at the end, then print the results and write them to `out` (None: print only)."""
     lines.append(f"# load average at the end {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     text = "\n".join(lines) + "\n"
     print(text)
-    if not args.no_write:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    return 0
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)
 
 
 if __name__ == "__main__":

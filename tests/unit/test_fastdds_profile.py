@@ -43,8 +43,8 @@ def _lease(path: Path) -> tuple[float, float] | None:
 
 def test_the_shipped_profile_carries_raw_images_in_shared_memory_and_a_short_lease():
     """A shared-memory segment that holds several raw 1920x1080 colour images (the default 512 KB does not
-    hold one 1280x720 image), UDPv4 beside it (discovery, other hosts) instead of the built-in pair, and
-    the 2 s lease launch has always given the nodes."""
+    hold one 1280x720 image), UDPv4 beside it (discovery, other hosts) instead of the built-in pair, with
+    a receive buffer for frames from another host, and the 2 s lease launch has always given the nodes."""
     path = default_profile_file()
     assert path.name == "fastdds.xml" and path.parent.name == "config"
     root = ET.parse(path).getroot()
@@ -58,6 +58,9 @@ def test_the_shipped_profile_carries_raw_images_in_shared_memory_and_a_short_lea
     assert set(kinds) == {"SHM", "UDPv4"}
     assert participant.find("f:rtps/f:useBuiltinTransports", NS).text == "false"
     assert int(kinds["SHM"].find("f:segment_size", NS).text) >= 4 * 1920 * 1080 * 3
+    # frames from another host: a burst of working-resolution frames (640x360 mono8) fits the socket's
+    # buffer with the kernel's overhead per fragment (the system default drops, and the drops are re-sent)
+    assert int(kinds["UDPv4"].find("f:receiveBufferSize", NS).text) >= 8 * 640 * 360 * 2
     assert _lease(path) == (2.0, 0.5)
 
 
@@ -93,3 +96,43 @@ def test_no_profile_named_when_the_package_has_none(monkeypatch, tmp_path):
 
     monkeypatch.setattr(launch, "default_profile_file", lambda: tmp_path / "fastdds.xml")
     assert launch.dds_profile_environment(str(tmp_path), None, FAST_DDS) == {}
+
+
+def test_static_peers_become_the_profile_s_unicast_discovery(tmp_path):
+    """LOCALHOST with ROS_STATIC_PEERS (a suite across hosts): a copy of the shipped profile whose
+    discovery is unicast to 127.0.0.1 and the peers (32 participants each, as rmw_fastrtps's LOCALHOST
+    transport), no multicast locator, and the range SYSTEM_DEFAULT so that rmw_fastrtps adds no second
+    UDPv4 transport; the transports and the lease stay the shipped ones."""
+    environ = {
+        **FAST_DDS,
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_STATIC_PEERS": "10.0.0.2; localhost;",
+    }
+    env = dds_profile_environment(str(tmp_path), None, environ)
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT" and env["ROS_STATIC_PEERS"] == ""
+    path = Path(env[PROFILE_VARIABLES[0]])
+    builtin = _participant(path).find("f:rtps/f:builtin", NS)
+    peers = [a.text for a in builtin.findall("f:initialPeersList/f:locator/f:udpv4/f:address", NS)]
+    assert peers == ["127.0.0.1", "10.0.0.2"]  # localhost once
+    (unicast,) = builtin.findall("f:metatrafficUnicastLocatorList/f:locator", NS)
+    assert (
+        unicast.find("f:udpv4", NS) is not None
+        and builtin.find("f:metatrafficMulticastLocatorList", NS) is None
+    )
+    udp = [d for d in ET.parse(path).getroot().iter(f"{{{NS['f']}}}transport_descriptor")
+           if d.find("f:type", NS).text == "UDPv4"]  # fmt: skip
+    assert [d.find("f:maxInitialPeersRange", NS).text for d in udp] == ["32"]
+    shipped = ET.tostring(_participant(default_profile_file()).find("f:rtps/f:userTransports", NS))
+    assert ET.tostring(_participant(path).find("f:rtps/f:userTransports", NS)) == shipped
+    assert _lease(path) == (2.0, 0.5)
+    leased = dds_profile_environment(str(tmp_path), 3.0, environ)
+    assert _lease(Path(leased[PROFILE_VARIABLES[0]])) == (3.0, 0.75)
+    # no peers, another range, or nowhere to write: the shipped file as it is
+    for other in (
+        {**environ, "ROS_STATIC_PEERS": ""},
+        {**environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"},
+    ):
+        assert dds_profile_environment(str(tmp_path), None, other) == {
+            PROFILE_VARIABLES[0]: str(default_profile_file())
+        }
+    assert dds_profile_environment(None, None, environ) == {PROFILE_VARIABLES[0]: str(default_profile_file())}

@@ -17,7 +17,10 @@ and wait for the reliable protocol's repair) and a short participant lease. A no
 expires (Fast DDS: 20 s), and frames published meanwhile go to the dead reader while the other nodes'
 wait-for-subscriber checks count it as there; the profile's lease is 2 s (--dds-lease: a copy with
 another). A profile file the environment names already is used instead (the user's configuration
-wins), and launch says that the project's transport settings are then the user's to carry over.
+wins), and launch says that the project's transport settings are then the user's to carry over. With
+static peers (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and ROS_STATIC_PEERS: a suite across hosts) the
+nodes get a copy with the peers as its discovery and the range SYSTEM_DEFAULT, the same discovery
+without the second UDPv4 transport rmw_fastrtps adds under LOCALHOST (each datagram would go twice).
 
 The parameter file is checked before anything starts: YAML, a mapping of node keys (a node name, or
 /ns/name, /**/name, /**) to {ros__parameters: {...}}. What each node gets (name, namespace, parameters,
@@ -573,7 +576,13 @@ def dds_profile_environment(
     (config/fastdds.xml); with `lease` (seconds, announced every lease / 4; 0: the middleware's) a copy
     of it with that participant lease, written into `directory`. Empty when the middleware is not Fast
     DDS, when the environment names a profile file other than the shipped one (the user's
-    configuration wins) or when the package was installed without it."""
+    configuration wins) or when the package was installed without it.
+
+    Static peers (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST with ROS_STATIC_PEERS, a suite across hosts):
+    with a directory, the copy also carries the peers as its discovery (profile_with_static_peers) and
+    the range becomes SYSTEM_DEFAULT for the process. Under LOCALHOST, Jazzy's rmw_fastrtps adds its own
+    shared-memory and UDPv4 transports to the profile's, and every datagram to another host is sent by
+    both UDPv4 transports; under SYSTEM_DEFAULT it leaves the profile's alone."""
     environ = os.environ if environ is None else environ
     rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     shipped = default_profile_file()
@@ -582,13 +591,73 @@ def dds_profile_environment(
         return {}
     if not shipped.is_file():  # Fast DDS would only log that it cannot read the file named
         return {}
-    if lease is None:
+    peers = static_peers(environ) if directory is not None else []
+    if lease is None and not peers:
         return {PROFILE_VARIABLES[0]: str(shipped)}
     if directory is None:
         raise ValueError("a profile with another lease needs a directory to be written into")
-    path = Path(directory) / f"fastdds_lease_{lease:g}.xml"
-    path.write_text(profile_with_lease(shipped.read_text(), lease))
-    return {PROFILE_VARIABLES[0]: str(path)}
+    text, name, env = shipped.read_text(), "fastdds", {}
+    if lease is not None:
+        text, name = profile_with_lease(text, lease), f"{name}_lease_{lease:g}"
+    if peers:
+        text, name = profile_with_static_peers(text, peers), f"{name}_static_peers"
+        env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT", "ROS_STATIC_PEERS": ""}
+    path = Path(directory) / f"{name}.xml"
+    path.write_text(text)
+    return {PROFILE_VARIABLES[0]: str(path), **env}
+
+
+def static_peers(environ: dict[str, str]) -> list[str]:
+    """The IPv4 addresses of ROS_STATIC_PEERS (names resolved, as rmw_fastrtps takes a name's first IPv4
+    address) when discovery is LOCALHOST with static peers; [] otherwise."""
+    import socket
+
+    if environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") != "LOCALHOST":
+        return []
+    peers = []
+    for peer in (p.strip() for p in environ.get("ROS_STATIC_PEERS", "").split(";")):
+        if peer:
+            try:
+                peers.append(socket.gethostbyname(peer))
+            except OSError as exc:
+                raise CliError(f"ROS_STATIC_PEERS: cannot resolve {peer!r} ({exc})") from exc
+    return peers
+
+
+def profile_with_static_peers(text: str, peers: Sequence[str]) -> str:
+    """A Fast DDS profile's text whose default participant discovers what rmw_fastrtps's LOCALHOST range
+    with static peers discovers: unicast announcements to 127.0.0.1 and to `peers` (IPv4 addresses), the
+    first 32 participants of each, as rmw_fastrtps's own UDPv4 transport has it; a unicast metatraffic
+    locator, so that no multicast one is created and nothing is multicast."""
+    import xml.etree.ElementTree as ET
+
+    namespace = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
+    ET.register_namespace("", namespace)
+    root = ET.fromstring(text)
+
+    def tag(name: str) -> str:
+        return f"{{{namespace}}}{name}"
+
+    def child(parent: ET.Element, name: str) -> ET.Element:
+        found = parent.find(tag(name))
+        return found if found is not None else ET.SubElement(parent, tag(name))
+
+    participant = next(p for p in root.iter(tag("participant")) if p.get("is_default_profile") == "true")
+    builtin = child(child(participant, "rtps"), "builtin")
+    for name in ("metatrafficUnicastLocatorList", "initialPeersList"):
+        old = builtin.find(tag(name))
+        if old is not None:
+            builtin.remove(old)
+    unicast = ET.SubElement(builtin, tag("metatrafficUnicastLocatorList"))
+    ET.SubElement(ET.SubElement(unicast, tag("locator")), tag("udpv4"))
+    initial = ET.SubElement(builtin, tag("initialPeersList"))
+    for address in dict.fromkeys(["127.0.0.1", *peers]):
+        udp = ET.SubElement(ET.SubElement(initial, tag("locator")), tag("udpv4"))
+        ET.SubElement(udp, tag("address")).text = address
+    for descriptor in root.iter(tag("transport_descriptor")):
+        if descriptor.findtext(tag("type")) == "UDPv4":
+            child(descriptor, "maxInitialPeersRange").text = "32"
+    return '<?xml version="1.0" encoding="UTF-8" ?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
 def profile_with_lease(text: str, lease: float) -> str:
@@ -660,7 +729,12 @@ def run(args: argparse.Namespace) -> int:
             specs, plan_params_file(plan, tmp), namespace, remaps, nice=args.nice, env=env
         )
         if env:
-            supervisor.log(f"Fast DDS profile {env[PROFILE_VARIABLES[0]]}")
+            peers = (
+                " (static peers in it: ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT)"
+                if "ROS_STATIC_PEERS" in env
+                else ""
+            )
+            supervisor.log(f"Fast DDS profile {env[PROFILE_VARIABLES[0]]}{peers}")
         elif profile_named():
             supervisor.log(
                 f"Fast DDS profile of the environment: {profile_named()} (ptz_selfcal's, "
