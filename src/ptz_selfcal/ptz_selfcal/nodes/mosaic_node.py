@@ -1,18 +1,17 @@
 """mosaic node: the live panorama of what the camera has seen (paper section 8), beside the calibrator.
 
 Subscribes to topics.FRAME_IN (the working-resolution mono8 image), topics.FRAME_CALIBRATION (K, D,
-orientation, status) and topics.HOMOGRAPHY (the tracking reference: FrameCalibration does not name
-it), raw, matched by header stamp (each frame's own reference: the three topics arrive in any order).
-The subscriptions are polled, not called back: their messages wait in the middleware's KEEP_LAST
-queues and are taken every POLL_PERIOD, a few executor wake-ups a second where a callback costs one
-per message. Only CONVERGED frames with a valid orientation enter, at most one per `frame_period`
-seconds of image time (the first after it: the others are dropped by their stamp, never
-deserialised), into a fixed `width` x `width`/2
-spherical canvas (mosaic/live.py: memory is the canvas, about width^2 bytes; each frame touches its
-own footprint only). The orientations are relative to the calibration's reference, so a new tracking
-reference starts a new mosaic. Every `publish_period` seconds, when frames entered since the last
-one, the canvas goes out as a sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG with
-alpha 0 where nothing was seen), its header the newest frame's. Off unless started (the suite's
+orientation, status) and topics.HOMOGRAPHY (the tracking reference: FrameCalibration does not name it),
+raw, matched by header stamp (each frame's own reference: the three topics arrive in any order). The
+subscriptions are polled, not called back: their messages wait in the middleware's KEEP_LAST queues and
+are taken every POLL_PERIOD, a few executor wake-ups a second where a callback costs one per message.
+Only CONVERGED frames with a valid orientation enter, at most one per `frame_period` seconds of image
+time (the first after it: the others are dropped by their stamp, never deserialised), into a fixed
+`width` x `width`/2 spherical canvas (mosaic/live.py: memory is the canvas, about width^2 bytes; each
+frame touches its own footprint only). The orientations are relative to the calibration's reference, so
+a new tracking reference starts a new mosaic. Every `publish_period` seconds, when frames entered since
+the last one, the canvas goes out as a sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG
+with alpha 0 where nothing was seen), its header the newest frame's. Off unless started (the suite's
 launch parameter). Run:
     python -m ptz_selfcal.nodes.mosaic_node --ros-args -p width:=8192
 """
