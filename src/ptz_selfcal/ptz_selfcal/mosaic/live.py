@@ -64,16 +64,19 @@ class LiveMosaic:
         W = self.projection.width
         for src, dst, n in column_runs(box.x0, box.x1, 0, W, W):
             v = warped.weight[:, src : src + n] * np.float32(WEIGHT_UNIT)
-            seen = v > 0.0
-            if not seen.any():
+            if not v.any():
                 continue
-            p = warped.pixels[:, src : src + n, 0].astype(np.float32)
             c = self.grey[rows, dst : dst + n]
-            w = self.weight[rows, dst : dst + n].astype(np.float32)
+            w = self.weight[rows, dst : dst + n]
             total = w + v
-            mean = (c * w + p * v) / np.maximum(total, np.float32(1e-6))
-            c[seen] = np.rint(mean[seen]).astype(np.uint8)
-            self.weight[rows, dst : dst + n][seen] = np.minimum(total[seen], WEIGHT_CAP).astype(np.uint8)
+            # c + (p - c) v / (w + v), in place and unmasked: exactly c (and the weight w) where v is 0
+            mean = warped.pixels[:, src : src + n, 0].astype(np.float32)
+            mean -= c
+            mean *= v
+            mean /= np.maximum(total, np.float32(1e-6))
+            mean += c
+            c[...] = np.rint(mean, out=mean)
+            w[...] = np.minimum(total, np.float32(WEIGHT_CAP), out=total)
 
     def encode(self, fmt: str = "jpeg", jpeg_quality: int = 85) -> bytes:
         """The canvas as JPEG (grey, black where nothing was seen) or PNG (BGRA, alpha 0 there)."""

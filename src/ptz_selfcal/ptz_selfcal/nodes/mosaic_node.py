@@ -1,15 +1,17 @@
 """mosaic node: the live panorama of what the camera has seen (paper section 8), beside the calibrator.
 
 Subscribes to topics.FRAME_IN (the working-resolution mono8 image), topics.FRAME_CALIBRATION (K, D,
-orientation, status) and topics.HOMOGRAPHY (the tracking reference), raw, matched by header stamp
-(each frame's own reference: the three topics arrive in any order). Only CONVERGED frames with a
-valid orientation enter, at most one per `frame_period` seconds of image time (the first after it:
-the others are dropped by their stamp, never deserialised), into a fixed `width` x `width`/2
-spherical canvas (mosaic/live.py: memory is the canvas, about width^2 bytes; each frame touches its
-own footprint only). The orientations are relative to the calibration's reference, so a new tracking
-reference starts a new mosaic. Every `publish_period` seconds, when frames entered since the last
-one, the canvas goes out as a sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG with
-alpha 0 where nothing was seen), its header the newest frame's. Off unless started (the suite's
+orientation, status) and topics.HOMOGRAPHY (the tracking reference: FrameCalibration does not name it),
+raw, matched by header stamp (each frame's own reference: the three topics arrive in any order). The
+subscriptions are polled, not called back: their messages wait in the middleware's KEEP_LAST queues and
+are taken every POLL_PERIOD, a few executor wake-ups a second where a callback costs one per message.
+Only CONVERGED frames with a valid orientation enter, at most one per `frame_period` seconds of image
+time (the first after it: the others are dropped by their stamp, never deserialised), into a fixed
+`width` x `width`/2 spherical canvas (mosaic/live.py: memory is the canvas, about width^2 bytes; each
+frame touches its own footprint only). The orientations are relative to the calibration's reference, so
+a new tracking reference starts a new mosaic. Every `publish_period` seconds, when frames entered since
+the last one, the canvas goes out as a sensor_msgs/CompressedImage on topics.MOSAIC (JPEG grey, or PNG
+with alpha 0 where nothing was seen), its header the newest frame's. Off unless started (the suite's
 launch parameter). Run:
     python -m ptz_selfcal.nodes.mosaic_node --ros-args -p width:=8192
 """
@@ -34,14 +36,20 @@ from ptz_selfcal.mosaic.live import FORMATS, LiveMosaic
 from ptz_selfcal.mosaic.warp import FrameView
 from ptz_selfcal.nodes.conversions import MSG_TO_STATUS, FrameError, declare_params, mono8_from_msg
 from ptz_selfcal.nodes.params import config_kwargs, params_from
-from ptz_selfcal.nodes.runtime import CountedWarnings, reliable_qos, run_node
+from ptz_selfcal.nodes.runtime import CountedWarnings, PolledGroup, reliable_qos, run_node, take
 from ptz_selfcal.settings import setting
 from ptz_selfcal.status import CalibrationStatus
 from ptz_selfcal.tools.bagio import header_stamp_ns
 from ptz_selfcal_msgs.msg import FrameCalibration, HomographyStamped, IngestedFrame
 
-# Messages of each input kept while their partners are on the way (they come on three topics).
+# Messages of each input kept while their partners are on the way (they come on three topics), and
+# the middleware's queue of images between two polls.
 PENDING = 16
+# Seconds between two takes of the inputs, and the middleware's queue of the small ones (a few bytes
+# each). No image is lost between two polls below PENDING / POLL_PERIOD frames/s (64); beyond, the
+# oldest go and a later frame enters.
+POLL_PERIOD = 0.25
+QUEUE_DEPTH = 64
 
 
 @dataclass(frozen=True)
@@ -80,6 +88,10 @@ def _put(pending: OrderedDict, key: int, value: Any) -> None:
         pending.popitem(last=False)
 
 
+def _never(msg: Any) -> None:
+    raise AssertionError("a polled subscription's messages are taken, never called back")
+
+
 def frame_view(fc: Any, width: int, height: int) -> FrameView | None:
     """A FrameCalibration's geometry (full resolution), None without a valid orientation or K."""
     o = fc.orientation
@@ -111,12 +123,24 @@ class MosaicNode(Node):
         self._dirty = False
         self._cpu = 0.0  # seconds in this node's callbacks
         self._pub = self.create_publisher(CompressedImage, topics.MOSAIC, reliable_qos(1))
-        for msg_type, topic, store in (
-            (IngestedFrame, topics.FRAME_IN, self._frames),
-            (FrameCalibration, topics.FRAME_CALIBRATION, self._calibrations),
-            (HomographyStamped, topics.HOMOGRAPHY, self._references),
-        ):
-            self.create_subscription(msg_type, topic, self._receiver(store), reliable_qos(PENDING), raw=True)
+        # polled, not called back: the inputs wait in the middleware's queues (KEEP_LAST) and are taken
+        # every POLL_PERIOD, so that the node wakes a few times a second instead of thrice per frame
+        polled = PolledGroup()
+        self._inputs = [
+            (
+                self.create_subscription(
+                    t, topic, _never, reliable_qos(depth), raw=True, callback_group=polled
+                ),
+                store,
+            )
+            for t, topic, store, depth in (
+                # the small ones first: an image then finds its partners already here
+                (HomographyStamped, topics.HOMOGRAPHY, self._references, QUEUE_DEPTH),
+                (FrameCalibration, topics.FRAME_CALIBRATION, self._calibrations, QUEUE_DEPTH),
+                (IngestedFrame, topics.FRAME_IN, self._frames, PENDING),
+            )
+        ]
+        self.create_timer(POLL_PERIOD, self._poll)
         self.create_timer(self._config.publish_period, self._publish)
         p = self._mosaic.projection
         self.get_logger().info(
@@ -130,19 +154,18 @@ class MosaicNode(Node):
         return self._counts
 
     # ----------------------------------------------------------------------------------------------
-    def _receiver(self, store: OrderedDict[int, bytes]) -> Any:
-        """A raw subscription's callback: most frames come too soon after the last one that entered,
-        and are dropped by their header stamp alone (the CDR's first field), never deserialised."""
-
-        def receive(raw: bytes) -> None:
-            start = time.thread_time()
-            stamp = header_stamp_ns(raw)
-            if stamp is not None and self._wanted(stamp):
-                _put(store, stamp, raw)
-                self._match(stamp)
-            self._cpu += time.thread_time() - start
-
-        return receive
+    def _poll(self) -> None:
+        """Take what waits on the three inputs: most frames come too soon after the last one that
+        entered, and are dropped by their header stamp alone (the CDR's first field), never
+        deserialised."""
+        start = time.thread_time()
+        for sub, store in self._inputs:
+            while (raw := take(sub)) is not None:
+                stamp = header_stamp_ns(raw)
+                if stamp is not None and self._wanted(stamp):
+                    _put(store, stamp, raw)
+                    self._match(stamp)
+        self._cpu += time.thread_time() - start
 
     def _wanted(self, stamp: int) -> bool:
         """Whether a frame of this stamp may enter now (frame_period of image time since the last)."""
