@@ -22,10 +22,12 @@ from ptz_selfcal.camera.distortion import (
     division_undistort,
 )
 from ptz_selfcal.camera.geometry import apply_homography
+from ptz_selfcal.camera.intrinsics import IntrinsicsModel
 from ptz_selfcal.frontend.homography import homography_dlt
 from ptz_selfcal.lens.hook import SessionLensHook
 from ptz_selfcal.nodes.session_runner import RunnerConfig, SessionRunner
 from ptz_selfcal.online import session as cs
+from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
 from ptz_selfcal.status import CalibrationStatus as S
 
 MOTIONS = {
@@ -180,11 +182,62 @@ def feed_distorted_pipeline(K, H, zoom, lam, every: int = 8, noise: float = 0.1,
 def test_a_distorted_zoom_lens_estimated_on_the_way_keeps_the_converged_promise(seed: int) -> None:
     """12 % barrel at the wide end, estimated by the default path (raw tracked homographies corrected by
     the lens correction, the adjustment's radial term on the raw matches): the frames published CONVERGED
-    are within 3 of their sigma_f and within 1 %; the exact data let it converge (an honest sigma of a
-    lens model that fits is small, and its two routes to f agree by the end)."""
+    are within 3 of their sigma_f and within 1 %; the exact data let the calibration converge (an honest
+    sigma of a lens model that fits is small, and its two routes to f agree by the end). The frames near
+    a keyframe are CONVERGED to the end; the others, a transfer of several per cent of zoom away through a
+    corrected homography, are CALIBRATING by their own sigma_f (the transfer's error and the homography's)
+    and say so."""
     K, H, zoom, lam = distorted_zoom_sweep()
     outs = feed_distorted_pipeline(K, H, zoom, lam, seed=seed)
     count, covered, off = converged_honesty(outs, K)
-    assert outs[-1].status == S.CONVERGED, (seed, count, outs[-1].status, outs[-1].message)
+    last = outs[-20:]
+    assert any(o.status == S.CONVERGED for o in last), (seed, count, [o.message for o in last])
+    assert all(o.status == S.CONVERGED or "this frame's 1-sigma" in o.message for o in last), (
+        seed,
+        [(o.status, o.message) for o in last],
+    )
     assert off == 0.0, (seed, count, off)
     assert covered >= 0.95, (seed, count, covered)
+
+
+def patch_fitted(H, corrupt, every: int = 8, seed: int = 0, points: int = 30, patch=(200.0, 110.0)):
+    """H with the frames in `corrupt` replaced by what a tracker fits when its surviving tracks are a small
+    patch of the image (a soft scene's last corners): the keyframe -> frame homography by DLT on `points`
+    tracks with 0.2 px noise inside one patch-sized part of the keyframe, exact there, extrapolated
+    over the rest of the frame. Keyframes keep their exact homographies."""
+    rng = np.random.default_rng(seed)
+    out = np.array(H, dtype=float)
+    for j in corrupt:
+        k = j - j % every
+        assert j != k
+        local = H[j] @ np.linalg.inv(H[k])
+        corner = rng.uniform([100.0, 100.0], [WIDTH - 100.0 - patch[0], HEIGHT - 100.0 - patch[1]])
+        xk = corner + rng.uniform([0.0, 0.0], patch, (points, 2))
+        xj = apply_homography(local, xk) + rng.normal(0.0, 0.2, (points, 2))
+        out[j] = homography_dlt(xk, xj) @ H[k]
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_a_frame_whose_homography_is_fitted_on_a_small_patch_is_not_converged_off_target(seed: int) -> None:
+    """The soft-panorama failure: tracks on a few weak corners of one part of the image fit the frame's
+    homography to their noise, but it is far off over the rest of the frame, and the frame's K transferred
+    through it (eq. 20) with it. Its sigma_f must say so (the part of H no rotating, zooming camera
+    produces), so it is never published CONVERGED more than 1 % off, and the CONVERGED frames keep their
+    3 sigma coverage; the exactly tracked frames around it still converge."""
+    K, H, zoom = encoded_sweep(120)
+    corrupt = [j for j in range(60, 120) if j % 8 in (3, 6)]
+    H_bad = patch_fitted(H, corrupt, seed=seed)
+    # the data are a test of it: some of these frames' transferred f is more than 1 % off
+    model, size = IntrinsicsModel(), (WIDTH, HEIGHT)
+    local = [(H_bad[j] @ np.linalg.inv(H[j - j % 8]), K[j - j % 8], K[j]) for j in corrupt]
+    f_bad = [
+        intrinsics_from_transferred_diac(h, Kk, model, size)[1, 1] / Kj[1, 1] - 1.0 for h, Kk, Kj in local
+    ]
+    assert max(abs(e) for e in f_bad) > 0.01, f_bad
+    outs = feed(cs.CalibratorSession(session_config(nominal_hfov_deg=50.0)), H_bad, zoom, seed=seed)
+    count, covered, off = converged_honesty(outs, K)
+    assert off == 0.0, (seed, count, off)
+    assert covered >= 0.95, (seed, count, covered)
+    clean = [o for j, o in enumerate(outs) if j >= 60 and j not in corrupt]
+    assert sum(o.status == S.CONVERGED for o in clean) >= 0.5 * len(clean), [o.status for o in clean]

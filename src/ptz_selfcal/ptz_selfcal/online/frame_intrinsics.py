@@ -1,9 +1,10 @@
 """Per-frame intrinsics in O(1), and the fallback chain when there is no calibration to transfer.
 
 A calibrated frame's K is a solved keyframe's K transferred by the short keyframe -> frame homography
-(eq. 20), so the error of the long reference -> keyframe chain does not enter. Without a calibration
-the chain is: the zoom model at the frame's zoom encoder, the prior transferred through the frame's
-homography, the last good K (tracking lost), the nominal field of view.
+(eq. 20), so the error of the long reference -> keyframe chain does not enter; its 1-sigma adds the
+transfer's error and the homography's own (the part of it no rotating, zooming camera produces).
+Without a calibration the chain is: the zoom model at the frame's zoom encoder, the prior transferred
+through the frame's homography, the last good K (tracking lost), the nominal field of view.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from ptz_selfcal.camera.intrinsics import SelfCalibrationError
 from ptz_selfcal.online.config import SessionConfig
 from ptz_selfcal.online.frames import FrameInput, FrameOutput
 from ptz_selfcal.online.work import CalibrationSnapshot
-from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac
+from ptz_selfcal.selfcal.transfer import intrinsics_from_transferred_diac, transfer_misfit
 from ptz_selfcal.status import SOLVED, CalibrationStatus
 from ptz_selfcal.zoom.model import ZoomModel
 
@@ -114,8 +115,9 @@ def frame_intrinsics(
     keyframe_id: int,
     links: KeyframeLinks,
     tracked_against: int | None = None,
-) -> tuple[Array, Array, float]:
-    """K_j, R_j, sigma_f of a frame whose homography from the reference is H.
+) -> tuple[Array, Array, float, float]:
+    """K_j, R_j, sigma_f of a frame whose homography from the reference is H, and the share of sigma_f/f
+    that is the homography's own (transfer_misfit: how far it is from any rotating, zooming camera's).
 
     Tracked against a keyframe of the solve (or one linked to it), its K is that keyframe's refined K
     (bundle adjustment) transferred by H_j H_k^-1 and its orientation R_kj R_k; otherwise the reference
@@ -136,15 +138,25 @@ def frame_intrinsics(
         if local is None:
             local = _unsolved_keyframe(snap, start, links)
     if local is None:
-        return K_ref, R_ref, sigma_f
+        misfit = _misfit(H, snap.calibrator.reference_K, size)
+        return K_ref, R_ref, math.hypot(sigma_f / K_ref[1, 1], misfit) * K_ref[1, 1], misfit
     H_k, K_k, R_k = local
     H_local = H @ np.linalg.inv(H_k)
     K = intrinsics_from_transferred_diac(H_local, K_k, model, size)
     R = rotation_from_homography(H_local, K_k, K) @ R_k
     zoom = math.log(K[1, 1] / K_k[1, 1]) if K[1, 1] > 0.0 and K_k[1, 1] > 0.0 else math.nan
-    # the reference's honest sigma (the common scale, section 6.2) and the transfer's own error (eq. 20)
-    relative = math.hypot(sigma_f / K_ref[1, 1], links.transfer_error.sigma(zoom))
-    return K, R, relative * K[1, 1]
+    # the reference's honest sigma (the common scale, section 6.2), the transfer's own error (eq. 20) and
+    # the error the frame's homography shows (eq. 4)
+    misfit = _misfit(H_local, K_k, size)
+    terms = (sigma_f / K_ref[1, 1], links.transfer_error.sigma(zoom), misfit)
+    return K, R, math.sqrt(sum(t * t for t in terms)) * K[1, 1], misfit
+
+
+def _misfit(H: Array, K_from: Array, size: tuple[int, int]) -> float:
+    """transfer_misfit, infinite when H has no rotating, zooming camera's map at all (the frame's f is
+    then unknown however well the reference is calibrated)."""
+    misfit = transfer_misfit(H, K_from, size)
+    return misfit if math.isfinite(misfit) else math.inf
 
 
 def _unsolved_keyframe(

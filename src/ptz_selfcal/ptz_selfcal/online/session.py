@@ -58,6 +58,7 @@ from ptz_selfcal.online.keyframe_calibration import KeyframeCalibration, new_cal
 from ptz_selfcal.online.keyframe_solver import KeyframeBundleSolver, KeyframeMatchSet
 from ptz_selfcal.online.lens_output import DistortionFn, PlumbBob
 from ptz_selfcal.online.selection import CalibrationFrameSelector
+from ptz_selfcal.online.status_policy import frame_status
 from ptz_selfcal.online.work import CalibrationSnapshot, PendingKeyframe, WorkBatch, WorkResult
 from ptz_selfcal.persist.atomic_file import remove_stale_temporaries
 from ptz_selfcal.persist.camera_info_file import intrinsics_problem
@@ -87,6 +88,7 @@ _FRAME_COUNTERS = (
     *("frames", "keyframe_matches", "invalid_homographies", "frames_without_homography"),
     *("reference_changes", "state_saves", "zoom_gate_rejections", "fast_motion_keyframes"),
     "unconfirmed_keyframes",
+    "off_model_frames",
     "prior_size_mismatches",
     "resets",
 )
@@ -264,12 +266,14 @@ class CalibratorSession:
         fast = self._motion.fast(self.reference_id, frame.stamp, H, self.image_size)
         snap = self._snapshot
         calibrated = None
+        off_model = False  # the homography is further from a rotating, zooming camera's than CONVERGED allows
         if self.phase is Phase.CALIBRATED:
             assert snap is not None
             try:
                 new = frame.tracking_state == TrackingState.NEW_KEYFRAME
                 against = self._tracked_against if new else None
-                K, R, sigma_f = frame_intrinsics(snap, H, kid, self._links, against)
+                K, R, sigma_f, misfit = frame_intrinsics(snap, H, kid, self._links, against)
+                off_model = not misfit <= self.config.converged_max_sigma_f
                 if np.all(np.isfinite(K)) and K[0, 0] > 0.0:
                     calibrated = (K, R, sigma_f)
             except _TRANSFER_ERRORS as exc:
@@ -286,7 +290,10 @@ class CalibratorSession:
         if frame.tracking_state == TrackingState.NEW_KEYFRAME and kid not in self._seen_keyframes:
             self._keyframe_added(frame, kid, H, fast, verdict)
         elif frame.tracking_state == TrackingState.TRACKING and verdict in _USABLE and not fast:
-            self._propose(frame, H, None if calibrated is None else calibrated[:2])
+            if off_model:  # its error would steer the solve (LM on eq. 22 takes the homography as it is)
+                self._counters["off_model_frames"] += 1
+            else:
+                self._propose(frame, H, None if calibrated is None else calibrated[:2])
         if verdict is ZoomVerdict.REFUSE:
             self._counters["zoom_gate_rejections"] += 1
             return self._without_homography(frame)
@@ -295,6 +302,9 @@ class CalibratorSession:
             K, R, sigma_f = calibrated
             out = calibrated_output(
                 snap, frame, K, R, sigma_f, self._plumb_bob(K, snap.shared_lam, self.image_size)
+            )
+            out.status, out.message = frame_status(
+                out.status, out.message, out.sigma_f / out.K[1, 1], self.config.converged_max_sigma_f
             )
             if out.status not in _FLAGGED:
                 self.last_good = out

@@ -18,6 +18,9 @@ firmly to the wrong f. So the policy asks, in this order:
    noise-free virtual correspondences and its fitted rays make smaller than the tracker's noise, so
    sigma is rescaled to the tracker's noise; above max_sigma_f: CALIBRATING.
 4. a fixed lens: f must not move when the radial term is toggled (keyframe_solver's lens-model check).
+
+A frame inherits its calibration's status only while its own 1-sigma of f (the calibration's, its
+transfer's, its homography's: online/frame_intrinsics) is below max_sigma_f as well (`frame_status`).
 """
 
 from __future__ import annotations
@@ -190,3 +193,17 @@ def decide(policy: StatusPolicy, e: StatusEvidence) -> tuple[CalibrationStatus, 
                 f"(> {100 * bound:.2g}%): not pinned by geometry"
             )
     return state, message
+
+
+def frame_status(
+    state: CalibrationStatus, message: str, relative_sigma: float, max_sigma_f: float
+) -> tuple[CalibrationStatus, str]:
+    """A calibrated frame's status: its calibration's, but CONVERGED promises this frame's f, so a frame
+    whose own relative 1-sigma is above max_sigma_f (a homography a rotating, zooming camera cannot
+    produce, a long transfer) is CALIBRATING, whatever the calibration's."""
+    if state != _S.CONVERGED or relative_sigma <= max_sigma_f:
+        return state, message
+    return _S.CALIBRATING, (
+        f"this frame's 1-sigma of f {100 * relative_sigma:.2g}% > {100 * max_sigma_f:.2g}%: its homography "
+        "or its transfer from the keyframe is less certain than the calibration"
+    )

@@ -3,7 +3,8 @@
 Once the reference K_0 is calibrated, any frame's K_j costs O(1) from its homography: the transferred
 DIAC is fitted to the intrinsics model (least-squares f with a constant principal point, a Cholesky
 factor with a per-frame one). A frame whose transferred f contradicts an independent prediction
-(`focal_disagrees`) has a wrong homography.
+(`focal_disagrees`) has a wrong homography; one that a rotating, zooming camera cannot produce
+(`transfer_misfit`) carries its own error into the transferred f.
 """
 
 from __future__ import annotations
@@ -13,6 +14,12 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ptz_selfcal.camera.geometry import (
+    apply_homography,
+    nearest_rotation,
+    pixel_grid,
+    rotation_from_homography,
+)
 from ptz_selfcal.camera.intrinsics import IntrinsicsModel, ParamMode, SelfCalibrationError, image_centre
 
 Array = NDArray[np.float64]
@@ -50,6 +57,57 @@ def intrinsics_from_transferred_diac(
     K = np.linalg.inv(N) @ K_n
     K = K / K[:, 2:3, 2:3]
     return K[0] if single else K
+
+
+def transfer_misfit(
+    H: ArrayLike, K_from: ArrayLike, image_size: tuple[int, int], iterations: int = 3
+) -> float:
+    """The relative 1-sigma of f that a transfer (eq. 20) through H inherits from H's own error, read off
+    the part of H that no rotating, zooming camera produces.
+
+    Eq. 4: H = K_j R K_i^-1, K_j with K_i's principal point, aspect and skew and its own f. The nearest
+    such map over a grid of the image (Gauss-Newton on R and log f from eq. 20's f and the rotation nearest
+    K_j^-1 H K_i) leaves an rms distance, taken per unit of the grid's rms radius about the principal
+    point (the distance a zoom by 1 moves it). A tracked homography that fits its inliers closely can
+    still be far off over the frame (tracks on weak corners held at their prediction, inliers on a small
+    part of the image), and the frame's f with it. An error with no preferred direction would be as large
+    in the zoom as in each of the 4 degrees of freedom outside the model (8 of H, 3 of R, 1 of f), half
+    their rms; a fit to a few tracks in one part of the image pins the map's shape better than its scale,
+    its zoom error is 1.5-2 times that (exact synthetic fits), so the whole rms is taken. NaN when H has
+    no such map.
+    """
+    H = np.asarray(H, dtype=float)
+    K_from = np.asarray(K_from, dtype=float)
+    try:
+        K = intrinsics_from_transferred_diac(H, K_from, IntrinsicsModel(), image_size)
+        R = rotation_from_homography(H, K_from, K)
+        K_from_inv = np.linalg.inv(K_from)
+    except (SelfCalibrationError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return math.nan
+    grid = pixel_grid(*image_size, count=8)
+    x = np.column_stack([grid, np.ones(len(grid))])
+    target = apply_homography(H, grid)
+    zoom = np.diag([1.0, 1.0, 0.0])  # d K / d log f = K diag(1, 1, 0)
+    generators = [np.cross(np.eye(3), axis) for axis in np.eye(3)]  # [e_i]x: d R = [e_i]x R
+    residual = np.full(2 * len(grid), np.inf)
+    for step in range(iterations + 1):
+        y = x @ (K @ R @ K_from_inv).T
+        if not np.all(y[:, 2] > 0.0):
+            return math.nan  # part of the image behind the camera: no such map
+        p = y[:, :2] / y[:, 2:3]
+        residual = (p - target).ravel()
+        if step == iterations:
+            break
+        dM = [K @ G @ R @ K_from_inv for G in generators] + [K @ zoom @ R @ K_from_inv]
+        dy = [x @ D.T for D in dM]
+        J = np.column_stack([((d[:, :2] - p * d[:, 2:3]) / y[:, 2:3]).ravel() for d in dy])
+        delta = np.linalg.lstsq(J, -residual, rcond=None)[0]
+        R = nearest_rotation((np.eye(3) + np.cross(np.eye(3), delta[:3])) @ R)
+        K = K.copy()
+        K[:2, :2] *= math.exp(delta[3])
+    radius = np.sqrt(np.mean(np.sum((grid - K_from[:2, 2] / K_from[2, 2]) ** 2, axis=1)))
+    misfit = math.sqrt(2.0 * float(np.mean(residual * residual))) / max(float(radius), 1e-9)
+    return misfit if math.isfinite(misfit) else math.nan
 
 
 def focal_disagrees(
