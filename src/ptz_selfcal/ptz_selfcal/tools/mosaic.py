@@ -113,6 +113,15 @@ class Frames:
     skipped: Counter = field(default_factory=Counter)
 
 
+def write_image(path: str | Path, image: np.ndarray) -> Path:
+    """The mosaic written to `path` (its folder made); CliError when it cannot be written."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), image):
+        raise CliError(f"{out}: cannot write the image")
+    return out
+
+
 def valid_quaternion(q: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(q)) and abs(float(np.linalg.norm(q)) - 1.0) < 1e-3)
 
@@ -371,10 +380,7 @@ def _mosaic_from(output_bag: Path, image_bag: Path, args: argparse.Namespace) ->
     start = time.monotonic()
     result = make_mosaic(image_bag, frames, args.projection, args.max_width, args.quiet, not args.no_exposure)
     wall = time.monotonic() - start
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), result.image):
-        raise CliError(f"{out}: cannot write the image")
+    out = write_image(args.out, result.image)
     p = result.projection
     skipped = ", ".join(f"{k} {v}" for k, v in sorted(frames.skipped.items())) or "none"
     covered = float((result.image[:, :, 3] > 0).mean())
@@ -491,10 +497,7 @@ def _mosaic_from_images(folder: Path, args: argparse.Namespace) -> int:
     source = StillsFrameSource([good[i] for i in calibration.indices], views)
     result = build_mosaic(source, args.projection, args.max_width, report, not args.no_exposure)
     wall = time.monotonic() - start
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), result.image):
-        raise CliError(f"{out}: cannot write the image")
+    out = write_image(args.out, result.image)
     p = result.projection
     covered = float((result.image[:, :, 3] > 0).mean())
     text = ", ".join(f"{k} {v}" for k, v in sorted(skipped.items())) or "none"
