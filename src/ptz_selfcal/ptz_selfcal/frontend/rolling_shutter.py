@@ -1,0 +1,144 @@
+"""Rolling shutter of a rotating camera, to first order in the readout time.
+
+Forssen and Ringaby's rolling-shutter model for a rotating camera (rows exposed one after another, the
+rotation interpolated at constant angular velocity across the frame): row y of an h-row frame stamped t
+(the middle row's time) is exposed at t + s(y) readout, s(y) = y / (h - 1) - 1/2. A point seen at x
+has moved by s(y) readout v(x) since the stamp, v the image velocity of the rotating camera (pixels/s,
+from two consecutive global-shutter homographies). Its global-shutter position at the stamp is
+x - readout d(x), d(x) = s(y) v(x): linear in the readout, so the readout time is one more linear
+unknown beside a homography's parameters (readout_step). The x^2 y and y^3 terms of d (the perspective
+of a rotation's image velocity) are no homography: they make the readout observable from two frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ptz_selfcal.camera.geometry import apply_homography
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FrameMotion:
+    """A frame's image motion: `back` maps its pixels to the previous frame's, taken dt seconds before."""
+
+    back: Array  # 3x3, this frame -> the previous one (global shutter)
+    dt: float  # seconds between the two stamps (> 0)
+
+
+def row_fraction(y: ArrayLike, height: int, scale: float = 1.0) -> Array:
+    """s(y) = y / (h - 1) - 1/2 of the full-resolution frame (h rows) for rows y of an image at `scale`
+    (working / full resolution; x_work = (x_full + 0.5) scale - 0.5)."""
+    y_full = (np.asarray(y, dtype=float) + 0.5) / scale - 0.5
+    rows = height / scale
+    return y_full / max(rows - 1.0, 1.0) - 0.5
+
+
+def displacement(points: ArrayLike, motion: FrameMotion | None, height: int, scale: float = 1.0) -> Array:
+    """d(x) = s(y) v(x) (pixels per second of readout) at `points` (N, 2) of a frame `height` rows high;
+    v(x) = (x - back x) / dt, the backward difference of the frame's motion. No motion: zeros."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    if motion is None or not motion.dt > 0.0:
+        return np.zeros_like(pts)
+    velocity = (pts - apply_homography(motion.back, pts)) / motion.dt
+    return row_fraction(pts[:, 1], height, scale)[:, None] * velocity
+
+
+def global_shutter(points: ArrayLike, d: ArrayLike, readout: float) -> Array:
+    """Positions at the stamp of a global-shutter camera: x - readout d(x)."""
+    return np.asarray(points, dtype=float).reshape(-1, 2) - readout * np.asarray(d, dtype=float).reshape(
+        -1, 2
+    )
+
+
+def _normaliser(points: Array) -> tuple[float, Array]:
+    """(scale, centre) of the similarity moving the centroid to 0 and the mean distance to sqrt(2)."""
+    centre = points.mean(axis=0)
+    return math.sqrt(2.0) / max(float(np.mean(np.linalg.norm(points - centre, axis=1))), 1e-12), centre
+
+
+def readout_step(
+    H: ArrayLike,
+    src: ArrayLike,
+    dst: ArrayLike,
+    d_src: ArrayLike,
+    d_dst: ArrayLike,
+    readout: float = 0.0,
+    iterations: int = 2,
+) -> tuple[float, float, Array]:
+    """Joint least squares over (H, readout) of |H (src - r d_src) - (dst - r d_dst)|^2 on inliers, by
+    Gauss-Newton from (H, readout): (readout, its 1-sigma from the residual, H). src, dst: the observed
+    (rolling-shutter) points; d_src, d_dst: their displacement() in their own frames."""
+    src, dst = np.asarray(src, float).reshape(-1, 2), np.asarray(dst, float).reshape(-1, 2)
+    d_src, d_dst = np.asarray(d_src, float).reshape(-1, 2), np.asarray(d_dst, float).reshape(-1, 2)
+    n = len(src)
+    if n < 6:
+        return readout, math.inf, np.asarray(H, float)
+    # normalised coordinates for conditioning (displacements scale with the points)
+    ks, cs = _normaliser(src)
+    kd, cd = _normaliser(dst)
+    Ts = np.array([[ks, 0.0, -ks * cs[0]], [0.0, ks, -ks * cs[1]], [0.0, 0.0, 1.0]])
+    Td = np.array([[kd, 0.0, -kd * cd[0]], [0.0, kd, -kd * cd[1]], [0.0, 0.0, 1.0]])
+    s, t, ds, dd = (src - cs) * ks, (dst - cd) * kd, d_src * ks, d_dst * kd
+    Hn = Td @ np.asarray(H, float) @ np.linalg.inv(Ts)
+    Hn = Hn / Hn[2, 2]
+    r = float(readout)
+    sigma = math.inf
+    for _ in range(max(iterations, 1)):
+        a = s - r * ds
+        w = a @ Hn[2, :2] + Hn[2, 2]
+        proj = apply_homography(Hn, a)
+        res = (proj - (t - r * dd)).ravel()
+        A = np.zeros((2 * n, 9))
+        A[0::2, 0:2] = a / w[:, None]
+        A[0::2, 2] = 1.0 / w
+        A[1::2, 3:5] = a / w[:, None]
+        A[1::2, 5] = 1.0 / w
+        A[0::2, 6:8] = -proj[:, :1] * a / w[:, None]
+        A[1::2, 6:8] = -proj[:, 1:2] * a / w[:, None]
+        # d proj / d a (2x2 per point) applied to -d_src, plus d_dst: the readout's column
+        Ja = (Hn[None, :2, :2] - proj[:, :, None] * Hn[None, 2, :2][:, None, :]) / w[:, None, None]
+        A[:, 8] = (-np.einsum("nij,nj->ni", Ja, ds) + dd).ravel()
+        norms = np.linalg.norm(A, axis=0)
+        if not norms[8] > 0.0:
+            return readout, math.inf, np.asarray(H, float)
+        norms[norms == 0.0] = 1.0
+        An = A / norms
+        step, *_ = np.linalg.lstsq(An, -res, rcond=None)
+        step /= norms
+        Hn = Hn + np.append(step[:8], 0.0).reshape(3, 3)
+        r += float(step[8])
+        dof = max(2 * n - 9, 1)
+        after = res + A @ step  # the linearised residual at the new estimate
+        var = float(after @ after) / dof
+        cov = np.linalg.pinv(An.T @ An)
+        sigma = math.sqrt(max(var * cov[8, 8], 0.0)) / norms[8]
+    H_out = np.linalg.inv(Td) @ Hn @ Ts
+    return r, sigma, H_out / H_out[2, 2]
+
+
+def combine(estimates: ArrayLike, sigmas: ArrayLike) -> tuple[float, float]:
+    """Per-frame estimates with their sigmas -> (weighted median, sigma): inverse-variance weights,
+    the sigma inflated by the estimates' robust scatter about the median (outliers, model error)."""
+    x, s = np.asarray(estimates, float), np.asarray(sigmas, float)
+    keep = np.isfinite(x) & np.isfinite(s) & (s > 0.0)
+    x, s = x[keep], s[keep]
+    if len(x) == 0:
+        return math.nan, math.inf
+    w = 1.0 / s**2
+    order = np.argsort(x)
+    cumulative = np.cumsum(w[order])
+    median = float(x[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+    spread = 1.4826 * float(np.median(np.abs(x - median) / s)) if len(x) >= 3 else 1.0
+    return median, max(spread, 1.0) / math.sqrt(float(w.sum()))
+
+
+def significant(readout: float, sigma: float, floor: float) -> bool:
+    """Whether an estimated readout is a rolling shutter: above 3 sigma and above `floor` (seconds);
+    negative readouts are rows read bottom to top (a flipped image)."""
+    return math.isfinite(readout) and abs(readout) > max(3.0 * sigma, floor)
