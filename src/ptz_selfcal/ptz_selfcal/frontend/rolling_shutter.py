@@ -142,3 +142,55 @@ def significant(readout: float, sigma: float, floor: float) -> bool:
     """Whether an estimated readout is a rolling shutter: above 3 sigma and above `floor` (seconds);
     negative readouts are rows read bottom to top (a flipped image)."""
     return math.isfinite(readout) and abs(readout) > max(3.0 * sigma, floor)
+
+
+# ----------------------------------------------------------------------------- the tracker's estimate
+MIN_READOUT = 0.004  # seconds: an estimate below this is not applied (a global shutter, or negligible)
+MIN_FRAMES = 5  # frames combined at least before an estimate is applied
+MAX_FRAME_SIGMA = 0.01  # seconds: a frame estimating worse than this has too little motion to count
+SETTLE_FRAMES = 40  # frames combined at least before the estimate settles
+SETTLE_RELATIVE = 0.03  # settled when sigma is below this share of the estimate (of MIN_READOUT: none)
+MAX_ESTIMATES = 400  # settled after this many frames in any case (bounded memory and time)
+
+
+class ReadoutEstimator:
+    """The readout time in use: a known one (>= 0; 0 = global shutter), or estimated from the tracked
+    frames' readout_step results, combined (combine) until settled, then no longer estimated. An
+    estimate is applied once significant(), else 0: a global-shutter camera is tracked as without it."""
+
+    def __init__(self, readout: float) -> None:
+        self.known = readout >= 0.0
+        self.estimate = float(readout) if self.known else math.nan
+        self.sigma = 0.0 if self.known else math.inf
+        self.settled = self.known
+        self.frames = 0
+        self._estimates: list[float] = []
+        self._sigmas: list[float] = []
+
+    @property
+    def enabled(self) -> bool:
+        """Whether rolling-shutter geometry is used at all (not a known global shutter)."""
+        return not (self.known and self.estimate == 0.0)
+
+    @property
+    def applied(self) -> float:
+        """The readout (s) points are corrected with now (0: none)."""
+        if self.known:
+            return self.estimate
+        applies = self.frames >= MIN_FRAMES and significant(self.estimate, self.sigma, MIN_READOUT)
+        return self.estimate if applies else 0.0
+
+    def add(self, readout: float, sigma: float) -> None:
+        """One frame's readout_step result (ignored once settled or when it carries no information)."""
+        if self.settled or not (math.isfinite(readout) and 0.0 < sigma <= MAX_FRAME_SIGMA):
+            return
+        self._estimates.append(readout)
+        self._sigmas.append(sigma)
+        self.frames = len(self._estimates)
+        self.estimate, self.sigma = combine(self._estimates, self._sigmas)
+        scale = abs(self.estimate) if significant(self.estimate, self.sigma, MIN_READOUT) else MIN_READOUT
+        if self.frames >= MAX_ESTIMATES or (
+            self.frames >= SETTLE_FRAMES and self.sigma < SETTLE_RELATIVE * scale
+        ):
+            self.settled = True
+            self._estimates, self._sigmas = [], []

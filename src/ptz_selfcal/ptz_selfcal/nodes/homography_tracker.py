@@ -129,6 +129,8 @@ MAP_FILE = "tracker_map.npz"
 # TrackerConfig fields the node does not expose (frame_ingest chooses the working scale).
 _NOT_PARAMETERS = {"working_scale"}
 _FRACTIONS = {"ratio", "fraction", "overlap", "level", "confidence"}  # name words of (0, 1] values
+# TrackerConfig fields whose negative values mean something, with their range
+_SIGNED = {"rolling_shutter_readout": (-1.0, 1.0)}  # < 0: estimated from the images
 
 
 def _field_comments() -> dict[str, str]:
@@ -164,12 +166,16 @@ def tracker_params() -> list[Param]:
 
 def _tracker_bounds(name: str) -> tuple[float, float]:
     """The descriptor's range of what _tracker_check accepts (a fraction's 0 is refused by the check)."""
+    if name in _SIGNED:
+        return _SIGNED[name]
     return (0.0, 1.0) if _FRACTIONS & set(name.split("_")) else (0.0, sys.float_info.max)
 
 
 def _tracker_check(name: str, default: Any) -> Any:
     if isinstance(default, str):
         return one_of(*TRACKER_CHOICES.get(name, (default,)))
+    if name in _SIGNED:
+        return in_range(*_SIGNED[name])
 
     def check(value: Any) -> str | None:
         if isinstance(default, bool):
