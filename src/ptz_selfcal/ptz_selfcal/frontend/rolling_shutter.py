@@ -116,8 +116,12 @@ def readout_step(
         dof = max(2 * n - 9, 1)
         after = res + A @ step  # the linearised residual at the new estimate
         var = float(after @ after) / dof
-        cov = np.linalg.pinv(An.T @ An)
-        sigma = math.sqrt(max(var * cov[8, 8], 0.0)) / norms[8]
+        # the readout's information: its column's part no change of H explains (a zoom's or a shear's
+        # displacements are homographies: no information, infinite sigma)
+        Q, _ = np.linalg.qr(An[:, :8])
+        g = An[:, 8]
+        unexplained = float(np.sum((g - Q @ (Q.T @ g)) ** 2))
+        sigma = math.sqrt(var / unexplained) / norms[8] if unexplained > 1e-9 else math.inf
     H_out = np.linalg.inv(Td) @ Hn @ Ts
     return r, sigma, H_out / H_out[2, 2]
 
@@ -146,7 +150,8 @@ def significant(readout: float, sigma: float, floor: float) -> bool:
 
 # ----------------------------------------------------------------------------- the tracker's estimate
 MIN_READOUT = 0.004  # seconds: an estimate below this is not applied (a global shutter, or negligible)
-MIN_FRAMES = 5  # frames combined at least before an estimate is applied
+MIN_FRAMES = 10  # frames combined at least before an estimate is applied
+MAX_FRAME_ZOOM = 0.03  # frames zooming more than this from the previous one do not estimate (first order)
 MAX_FRAME_SIGMA = 0.01  # seconds: a frame estimating worse than this has too little motion to count
 SETTLE_FRAMES = 40  # frames combined at least before the estimate settles
 SETTLE_RELATIVE = 0.03  # settled when sigma is below this share of the estimate (of MIN_READOUT: none)

@@ -60,7 +60,13 @@ from ptz_selfcal.frontend.keyframe_links import (
     MeasuredLink,
     make_link,
 )
-from ptz_selfcal.frontend.rolling_shutter import FrameMotion, ReadoutEstimator, displacement, readout_step
+from ptz_selfcal.frontend.rolling_shutter import (
+    MAX_FRAME_ZOOM,
+    FrameMotion,
+    ReadoutEstimator,
+    displacement,
+    readout_step,
+)
 from ptz_selfcal.frontend.tracker_config import TrackerConfig
 from ptz_selfcal.frontend.tracker_map import StoredKeyframe, TrackerMap
 from ptz_selfcal.status import TrackingState
@@ -349,7 +355,8 @@ class HomographyTracker:
                 fit.H, src, dst, fit.inliers, threshold, c.min_inliers, c.refine_iterations
             )
             fit = refit if refit is not None else fit
-        if not self._readout.settled and keyframe.motion is not None:
+        zoom = local_scale(frame.motion.back, frame.image.shape)
+        if not self._readout.settled and keyframe.motion is not None and abs(zoom - 1.0) <= MAX_FRAME_ZOOM:
             height = frame.image.shape[0]
             src_in, dst_in = src_raw[fit.inliers], dst_raw[fit.inliers]
             d_src = displacement(src_in, keyframe.motion, height, frame.scale)

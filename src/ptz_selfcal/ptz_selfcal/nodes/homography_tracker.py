@@ -404,6 +404,7 @@ class HomographyTrackerNode(Node):
             rms = float(result.rms_transfer_error)
             out.rms_transfer_error = rms if math.isfinite(rms) else 0.0
         out.state = TRACKING_STATE_TO_MSG[state]
+        out.rolling_shutter_readout = 0.0 if state in LOST_STATES else float(result.readout)
         if result is not None and result.keyframe_id is not None:
             out.keyframe_id = int(result.keyframe_id)
         if self._reference is not None:
@@ -455,6 +456,25 @@ class HomographyTrackerNode(Node):
             for kid in [k for k in self._keyframe_stamps if k not in alive]:
                 del self._keyframe_stamps[kid]
 
+    def _readout_values(self) -> dict[str, Any]:
+        """The rolling-shutter readout: in use, estimated (its 1-sigma, frames) and how it is known."""
+        readout = self._tracker.readout
+        if not readout.enabled:
+            mode = "off (global shutter)"
+        elif readout.known:
+            mode = "known (tracker.rolling_shutter_readout)"
+        else:
+            mode = "estimated, settled" if readout.settled else "estimating"
+        values: dict[str, Any] = {
+            "rolling_shutter": mode,
+            "rolling_shutter_readout_ms": f"{1e3 * readout.applied:.3f}",
+        }
+        if not readout.known:
+            values["rolling_shutter_estimate_ms"] = f"{1e3 * readout.estimate:.3f}"
+            values["rolling_shutter_sigma_ms"] = f"{1e3 * readout.sigma:.3f}"
+            values["rolling_shutter_frames"] = readout.frames
+        return values
+
     def _publish_diagnostics(self) -> None:
         counters: dict[str, Any] = {"frames_in": 0, "frames_out": 0, "frames_dropped": 0}
         counters.update(sorted(self._counts.items()))
@@ -464,6 +484,7 @@ class HomographyTrackerNode(Node):
             counters["track_ms_mean"] = f"{d.mean():.2f}"
             counters["track_ms_p95"] = f"{np.percentile(d, 95):.2f}"
             counters["track_ms_max"] = f"{d.max():.2f}"
+        counters.update(self._readout_values())
         counters["keyframes"] = len(self._keyframe_stamps)
         counters["map_keyframes"] = len(self._tracker.keyframes())  # in the tracker's store (max_keyframes)
         # matched on this side (what an output published now reaches), so a graph's readiness is observable
