@@ -92,8 +92,8 @@ def test_correction_recovers_the_global_shutter_homography():
     readout = 0.03
     x_kf, x_cur, m_kf, m_cur, H_true = pair(readout, STILL, FAST)
     raw = grid_error(estimate_homography(x_kf, x_cur), H_true)
-    gs_kf = global_shutter(x_kf, displacement(x_kf, m_kf, H), readout)
-    gs_cur = global_shutter(x_cur, displacement(x_cur, m_cur, H), readout)
+    gs_kf = global_shutter(x_kf, m_kf, readout, H)
+    gs_cur = global_shutter(x_cur, m_cur, readout, H)
     corrected = grid_error(estimate_homography(gs_kf, gs_cur), H_true)
     assert raw > 5.0  # 30 deg/s over a 30 ms readout: a frame sheared by ~10 px
     assert corrected < 0.02 * raw and corrected < 0.15
@@ -121,7 +121,7 @@ def test_global_shutter_data_estimates_zero_and_nothing_is_applied():
 def test_no_motion_no_displacement_and_no_estimate():
     x = np.array([[10.0, 20.0], [500.0, 300.0]])
     assert np.all(displacement(x, None, H) == 0.0)
-    assert np.all(global_shutter(x, displacement(x, None, H), 0.03) == x)
+    assert np.all(global_shutter(x, None, 0.03, H) == x)
     x_kf, x_cur, *_ = pair(0.0, STILL, STILL)
     zero = np.zeros_like(x_kf)
     tau, sigma, _ = readout_step(estimate_homography(x_kf, x_cur), x_kf, x_cur, zero, zero, readout=0.01)

@@ -33,7 +33,7 @@ from ptz_selfcal.frontend.features import (
     track_klt,
 )
 from ptz_selfcal.frontend.homography import max_deviation, plausible
-from ptz_selfcal.frontend.rolling_shutter import FrameMotion, displacement, global_shutter
+from ptz_selfcal.frontend.rolling_shutter import FrameMotion, global_shutter
 from ptz_selfcal.frontend.tracker_config import TrackerConfig
 
 Array = NDArray[np.float64]
@@ -89,8 +89,7 @@ class LinkFrame:
         `motion`); the points themselves without a readout or a motion."""
         if self.readout == 0.0 or motion is None:
             return points
-        d = displacement(points, motion, self.image.shape[0], self.scale)
-        return global_shutter(points, d, self.readout)
+        return global_shutter(points, motion, self.readout, self.image.shape[0], self.scale)
 
 
 @dataclass(frozen=True)

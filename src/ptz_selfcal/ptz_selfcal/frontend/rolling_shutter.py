@@ -3,19 +3,24 @@
 Forssen and Ringaby's rolling-shutter model for a rotating camera (rows exposed one after another, the
 rotation interpolated at constant angular velocity across the frame): row y of an h-row frame stamped t
 (the middle row's time) is exposed at t + s(y) readout, s(y) = y / (h - 1) - 1/2. A point seen at x
-has moved by s(y) readout v(x) since the stamp, v the image velocity of the rotating camera (pixels/s,
-from two consecutive global-shutter homographies). Its global-shutter position at the stamp is
-x - readout d(x), d(x) = s(y) v(x): linear in the readout, so the readout time is one more linear
-unknown beside a homography's parameters (readout_step). The x^2 y and y^3 terms of d (the perspective
-of a rotation's image velocity) are no homography: they make the readout observable from two frames.
+has moved by s(y) readout v(x) since the stamp, v the image velocity of the rotating camera (pixels/s).
+The image motion of a rotation at constant rate is a one-parameter group of homographies exp(t A); A is
+the logarithm of the frame's motion from the previous frame (two consecutive global-shutter
+homographies), v(x) the flow of A at x. The global-shutter position at the stamp is exp(-s(y) readout A)
+applied to x (global_shutter; to second order in the readout), x - readout d(x) to first order with
+d(x) = s(y) v(x): one more linear unknown beside a homography's parameters (readout_step). The x^2 y and
+y^3 terms of d (the perspective of a rotation's image velocity) are no homography: they make the readout
+observable from two frames.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.camera.geometry import apply_homography
@@ -30,6 +35,16 @@ class FrameMotion:
     back: Array  # 3x3, this frame -> the previous one (global shutter)
     dt: float  # seconds between the two stamps (> 0)
 
+    @cached_property
+    def generator(self) -> Array:
+        """A with exp(-dt A) = back (up to scale): the image motion per second at this frame."""
+        back = np.asarray(self.back, dtype=float)
+        det = np.linalg.det(back)
+        if not (self.dt > 0.0 and det > 0.0):
+            return np.zeros((3, 3))
+        log = scipy.linalg.logm(back / np.cbrt(det))
+        return -np.real(log) / self.dt
+
 
 def row_fraction(y: ArrayLike, height: int, scale: float = 1.0) -> Array:
     """s(y) = y / (h - 1) - 1/2 of the full-resolution frame (h rows) for rows y of an image at `scale`
@@ -39,21 +54,35 @@ def row_fraction(y: ArrayLike, height: int, scale: float = 1.0) -> Array:
     return y_full / max(rows - 1.0, 1.0) - 0.5
 
 
+def _flow(A: Array, pts: Array) -> Array:
+    """Image velocity of the homography flow exp(t A) at pts (N, 2): d/dt of the projected point."""
+    p = pts @ A[:, :2].T + A[:, 2]
+    return p[:, :2] - pts * p[:, 2:]
+
+
 def displacement(points: ArrayLike, motion: FrameMotion | None, height: int, scale: float = 1.0) -> Array:
-    """d(x) = s(y) v(x) (pixels per second of readout) at `points` (N, 2) of a frame `height` rows high;
-    v(x) = (x - back x) / dt, the backward difference of the frame's motion. No motion: zeros."""
+    """d(x) = s(y) v(x) (pixels per second of readout) at `points` (N, 2) of a frame `height` rows high,
+    v the image velocity of the frame's motion (its generator's flow). No motion: zeros."""
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if motion is None or not motion.dt > 0.0:
         return np.zeros_like(pts)
-    velocity = (pts - apply_homography(motion.back, pts)) / motion.dt
-    return row_fraction(pts[:, 1], height, scale)[:, None] * velocity
+    return row_fraction(pts[:, 1], height, scale)[:, None] * _flow(motion.generator, pts)
 
 
-def global_shutter(points: ArrayLike, d: ArrayLike, readout: float) -> Array:
-    """Positions at the stamp of a global-shutter camera: x - readout d(x)."""
-    return np.asarray(points, dtype=float).reshape(-1, 2) - readout * np.asarray(d, dtype=float).reshape(
-        -1, 2
-    )
+def global_shutter(
+    points: ArrayLike, motion: FrameMotion | None, readout: float, height: int, scale: float = 1.0
+) -> Array:
+    """Positions at the stamp of a global-shutter camera: exp(-u A) x with u = s(y) readout, to second
+    order in u (first order: x - readout d(x)). No motion or readout: the points."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    if motion is None or readout == 0.0 or not motion.dt > 0.0:
+        return pts
+    A = motion.generator
+    u = readout * row_fraction(pts[:, 1], height, scale)[:, None]
+    x = np.column_stack([pts, np.ones(len(pts))])
+    Ax = x @ A.T
+    q = x - u * Ax + 0.5 * u**2 * (Ax @ A.T)
+    return q[:, :2] / q[:, 2:]
 
 
 def _normaliser(points: Array) -> tuple[float, Array]:
@@ -71,9 +100,10 @@ def readout_step(
     readout: float = 0.0,
     iterations: int = 2,
 ) -> tuple[float, float, Array]:
-    """Joint least squares over (H, readout) of |H (src - r d_src) - (dst - r d_dst)|^2 on inliers, by
-    Gauss-Newton from (H, readout): (readout, its 1-sigma from the residual, H). src, dst: the observed
-    (rolling-shutter) points; d_src, d_dst: their displacement() in their own frames."""
+    """Joint least squares over (H, r) of |H (src - (r - readout) d_src) - (dst - (r - readout) d_dst)|^2
+    on inliers, by Gauss-Newton from (H, readout): (r, its 1-sigma from the residual, H). src, dst: the
+    points corrected for `readout` (global_shutter; the observed ones for 0); d_src, d_dst: their
+    displacement() in their own frames (the derivative of the correction)."""
     src, dst = np.asarray(src, float).reshape(-1, 2), np.asarray(dst, float).reshape(-1, 2)
     d_src, d_dst = np.asarray(d_src, float).reshape(-1, 2), np.asarray(d_dst, float).reshape(-1, 2)
     n = len(src)
@@ -90,10 +120,10 @@ def readout_step(
     r = float(readout)
     sigma = math.inf
     for _ in range(max(iterations, 1)):
-        a = s - r * ds
+        a = s - (r - readout) * ds
         w = a @ Hn[2, :2] + Hn[2, 2]
         proj = apply_homography(Hn, a)
-        res = (proj - (t - r * dd)).ravel()
+        res = (proj - (t - (r - readout) * dd)).ravel()
         A = np.zeros((2 * n, 9))
         A[0::2, 0:2] = a / w[:, None]
         A[0::2, 2] = 1.0 / w
@@ -150,7 +180,8 @@ def significant(readout: float, sigma: float, floor: float) -> bool:
 
 # ----------------------------------------------------------------------------- the tracker's estimate
 MIN_READOUT = 0.004  # seconds: an estimate below this is not applied (a global shutter, or negligible)
-MIN_FRAMES = 10  # frames combined at least before an estimate is applied
+MIN_FRAMES = 5  # frames combined at least before an estimate is applied
+MIN_GROUPS = 2  # ... from this many keyframes at least (frames of one keyframe share its errors)
 MAX_FRAME_ZOOM = 0.03  # frames zooming more than this from the previous one do not estimate (first order)
 MAX_FRAME_SIGMA = 0.01  # seconds: a frame estimating worse than this has too little motion to count
 SETTLE_FRAMES = 40  # frames combined at least before the estimate settles
@@ -161,7 +192,9 @@ MAX_ESTIMATES = 400  # settled after this many frames in any case (bounded memor
 class ReadoutEstimator:
     """The readout time in use: a known one (>= 0; 0 = global shutter), or estimated from the tracked
     frames' readout_step results, combined (combine) until settled, then no longer estimated. An
-    estimate is applied once significant(), else 0: a global-shutter camera is tracked as without it."""
+    estimate is applied once significant(), else 0: a global-shutter camera is tracked as without it.
+    Frames tracked against one keyframe share its errors: the sigma counts keyframes (groups), not
+    frames, as independent (inflated by sqrt(frames / groups))."""
 
     def __init__(self, readout: float) -> None:
         self.known = readout >= 0.0
@@ -171,6 +204,7 @@ class ReadoutEstimator:
         self.frames = 0
         self._estimates: list[float] = []
         self._sigmas: list[float] = []
+        self._groups: set[int] = set()
 
     @property
     def enabled(self) -> bool:
@@ -182,20 +216,24 @@ class ReadoutEstimator:
         """The readout (s) points are corrected with now (0: none)."""
         if self.known:
             return self.estimate
-        applies = self.frames >= MIN_FRAMES and significant(self.estimate, self.sigma, MIN_READOUT)
+        applies = (self.frames >= MIN_FRAMES and len(self._groups) >= MIN_GROUPS) or self.settled
+        applies = applies and significant(self.estimate, self.sigma, MIN_READOUT)
         return self.estimate if applies else 0.0
 
-    def add(self, readout: float, sigma: float) -> None:
-        """One frame's readout_step result (ignored once settled or when it carries no information)."""
+    def add(self, readout: float, sigma: float, group: int = 0) -> None:
+        """One frame's readout_step result, tracked against keyframe `group` (ignored once settled or
+        when it carries no information)."""
         if self.settled or not (math.isfinite(readout) and 0.0 < sigma <= MAX_FRAME_SIGMA):
             return
         self._estimates.append(readout)
         self._sigmas.append(sigma)
+        self._groups.add(group)
         self.frames = len(self._estimates)
-        self.estimate, self.sigma = combine(self._estimates, self._sigmas)
+        self.estimate, sigma = combine(self._estimates, self._sigmas)
+        self.sigma = sigma * math.sqrt(self.frames / len(self._groups))
         scale = abs(self.estimate) if significant(self.estimate, self.sigma, MIN_READOUT) else MIN_READOUT
         if self.frames >= MAX_ESTIMATES or (
             self.frames >= SETTLE_FRAMES and self.sigma < SETTLE_RELATIVE * scale
         ):
             self.settled = True
-            self._estimates, self._sigmas = [], []
+            self._estimates, self._sigmas, self._groups = [], [], set()

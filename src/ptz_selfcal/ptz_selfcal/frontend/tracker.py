@@ -358,11 +358,13 @@ class HomographyTracker:
         zoom = local_scale(frame.motion.back, frame.image.shape)
         if not self._readout.settled and keyframe.motion is not None and abs(zoom - 1.0) <= MAX_FRAME_ZOOM:
             height = frame.image.shape[0]
-            src_in, dst_in = src_raw[fit.inliers], dst_raw[fit.inliers]
+            # linearised about the readout in use (the points corrected for it)
+            src_in = frame.corrected(src_raw[fit.inliers], keyframe.motion)
+            dst_in = frame.corrected(dst_raw[fit.inliers], frame.motion)
             d_src = displacement(src_in, keyframe.motion, height, frame.scale)
             d_dst = displacement(dst_in, frame.motion, height, frame.scale)
             estimate, sigma, _ = readout_step(fit.H, src_in, dst_in, d_src, d_dst, frame.readout)
-            self._readout.add(estimate, sigma)
+            self._readout.add(estimate, sigma, keyframe.id)
         return fit
 
     def _klt_tracks(
