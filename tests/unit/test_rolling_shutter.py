@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 
 from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation
-from ptz_selfcal.frontend.homography import estimate_homography
+from ptz_selfcal.frontend.homography import estimate_homography, max_deviation
 from ptz_selfcal.frontend.rolling_shutter import (
     FrameMotion,
     combine,
     displacement,
     global_shutter,
     readout_step,
+    rotation_motion,
     row_fraction,
     significant,
 )
@@ -139,3 +140,19 @@ def test_combine_is_a_weighted_median_robust_to_outliers():
     assert combine([], [])[0] != combine([], [])[0]  # NaN: nothing to combine
     assert significant(0.03, 0.001, 0.002) and significant(-0.03, 0.001, 0.002)
     assert not significant(0.03, 0.011, 0.002) and not significant(0.001, 0.0001, 0.002)
+
+
+def test_the_motion_without_zoom_and_the_velocity_at_the_stamp():
+    zoom = np.array([[1.02, 0.0, -0.02 * (W - 1) / 2], [0.0, 1.02, -0.02 * (H - 1) / 2], [0.0, 0.0, 1.0]])
+    assert rotation_motion(zoom, (H, W)) == pytest.approx(np.eye(3), abs=1e-12)
+    pan = motion_of(0.0, FAST, (0.0, 0.0))
+    # a pan has (almost) no scale at the centre: left as it is, to 1 % of its 21 px
+    assert max_deviation(rotation_motion(pan.back, (H, W)), pan.back, (H, W)) < 0.25
+    # constant rate: the previous interval's generator is the same, the stamp's velocity is the interval's
+    steady = FrameMotion(pan.back, DT, previous=(pan.interval_generator, DT))
+    assert steady.generator == pytest.approx(pan.interval_generator, abs=1e-12)
+    # a rate growing over the intervals is extrapolated half an interval on, to the stamp
+    slower = FrameMotion(motion_of(0.0, (FAST[0] / 2, 0.0), (0.0, 0.0)).back, DT)
+    faster = FrameMotion(pan.back, DT, previous=(slower.interval_generator, DT))
+    expected = pan.interval_generator + 0.5 * (pan.interval_generator - slower.interval_generator)
+    assert faster.generator == pytest.approx(expected)

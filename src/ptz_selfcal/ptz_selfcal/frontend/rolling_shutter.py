@@ -24,6 +24,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from ptz_selfcal.camera.geometry import apply_homography
+from ptz_selfcal.frontend.homography import local_scale
 
 Array = NDArray[np.float64]
 
@@ -34,16 +35,37 @@ class FrameMotion:
 
     back: Array  # 3x3, this frame -> the previous one (global shutter)
     dt: float  # seconds between the two stamps (> 0)
+    # the previous frame's interval_generator and dt (the velocity extrapolated to the stamp)
+    previous: tuple[Array, float] | None = None
 
     @cached_property
-    def generator(self) -> Array:
-        """A with exp(-dt A) = back (up to scale): the image motion per second at this frame."""
+    def interval_generator(self) -> Array:
+        """A with exp(-dt A) = back (up to scale): the mean image motion per second over the interval."""
         back = np.asarray(self.back, dtype=float)
         det = np.linalg.det(back)
         if not (self.dt > 0.0 and det > 0.0):
             return np.zeros((3, 3))
         log = scipy.linalg.logm(back / np.cbrt(det))
         return -np.real(log) / self.dt
+
+    @cached_property
+    def generator(self) -> Array:
+        """The image motion per second at this frame's stamp: the interval's (its middle's) extrapolated
+        linearly to the stamp with the previous interval's, when known."""
+        A = self.interval_generator
+        if self.previous is None or not self.previous[1] > 0.0:
+            return A
+        A_earlier, dt_earlier = self.previous
+        return A + (A - A_earlier) * self.dt / (self.dt + dt_earlier)
+
+
+def rotation_motion(back: Array, shape: tuple[int, ...]) -> Array:
+    """A frame's motion without its zoom (the scale at the image centre, taken about it): the rows are
+    read under the stamp's focal length, only the rotation moves across the readout (the model)."""
+    h, w = shape[:2]
+    z = local_scale(back, shape)
+    centre = np.array([[1.0, 0.0, (w - 1) / 2.0], [0.0, 1.0, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return centre @ np.diag([1.0 / z, 1.0 / z, 1.0]) @ np.linalg.inv(centre) @ back
 
 
 def row_fraction(y: ArrayLike, height: int, scale: float = 1.0) -> Array:
@@ -60,13 +82,17 @@ def _flow(A: Array, pts: Array) -> Array:
     return p[:, :2] - pts * p[:, 2:]
 
 
-def displacement(points: ArrayLike, motion: FrameMotion | None, height: int, scale: float = 1.0) -> Array:
+def displacement(
+    points: ArrayLike, motion: FrameMotion | None, height: int, scale: float = 1.0, at_stamp: bool = True
+) -> Array:
     """d(x) = s(y) v(x) (pixels per second of readout) at `points` (N, 2) of a frame `height` rows high,
-    v the image velocity of the frame's motion (its generator's flow). No motion: zeros."""
+    v the image velocity of the frame's motion (its generator's flow) at the stamp, or (at_stamp False)
+    the interval's mean, less noisy (no extrapolation). No motion: zeros."""
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if motion is None or not motion.dt > 0.0:
         return np.zeros_like(pts)
-    return row_fraction(pts[:, 1], height, scale)[:, None] * _flow(motion.generator, pts)
+    A = motion.generator if at_stamp else motion.interval_generator
+    return row_fraction(pts[:, 1], height, scale)[:, None] * _flow(A, pts)
 
 
 def global_shutter(

@@ -66,6 +66,7 @@ from ptz_selfcal.frontend.rolling_shutter import (
     ReadoutEstimator,
     displacement,
     readout_step,
+    rotation_motion,
 )
 from ptz_selfcal.frontend.tracker_config import TrackerConfig
 from ptz_selfcal.frontend.tracker_map import StoredKeyframe, TrackerMap
@@ -342,7 +343,11 @@ class HomographyTracker:
         ):
             return fit
         # this frame -> keyframe -> the previous frame (tracked against the same keyframe)
-        frame.motion = FrameMotion(back=tracks.H_last @ np.linalg.inv(fit.H), dt=stamp - self._last_stamp)
+        back = tracks.H_last @ np.linalg.inv(fit.H)
+        last = self._last_motion
+        previous = None if last is None else (last.interval_generator, last.dt)
+        frame.motion = FrameMotion(back=rotation_motion(back, frame.image.shape), dt=stamp - self._last_stamp,
+                                   previous=previous)  # fmt: skip
         if keyframe.motion is None and keyframe.id == frame.index - 1:
             # a keyframe made without a motion (the first, a relocalised one): the same interval's
             keyframe.motion = frame.motion
@@ -355,14 +360,15 @@ class HomographyTracker:
                 fit.H, src, dst, fit.inliers, threshold, c.min_inliers, c.refine_iterations
             )
             fit = refit if refit is not None else fit
-        zoom = local_scale(frame.motion.back, frame.image.shape)
+        zoom = local_scale(back, frame.image.shape)
         if not self._readout.settled and keyframe.motion is not None and abs(zoom - 1.0) <= MAX_FRAME_ZOOM:
             height = frame.image.shape[0]
             # linearised about the readout in use (the points corrected for it)
             src_in = frame.corrected(src_raw[fit.inliers], keyframe.motion)
             dst_in = frame.corrected(dst_raw[fit.inliers], frame.motion)
-            d_src = displacement(src_in, keyframe.motion, height, frame.scale)
-            d_dst = displacement(dst_in, frame.motion, height, frame.scale)
+            # the intervals' velocities: the stamps' (extrapolated) are noisier, attenuating the estimate
+            d_src = displacement(src_in, keyframe.motion, height, frame.scale, at_stamp=False)
+            d_dst = displacement(dst_in, frame.motion, height, frame.scale, at_stamp=False)
             estimate, sigma, _ = readout_step(fit.H, src_in, dst_in, d_src, d_dst, frame.readout)
             self._readout.add(estimate, sigma, keyframe.id)
         return fit
