@@ -20,8 +20,9 @@ Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) *
 Rolling shutter (frontend.rolling_shutter; TrackerConfig.rolling_shutter_readout: known, or estimated
 from the tracked frames): KLT measures the observed (rolling-shutter) positions; every fit, link and
 published point is on the global-shutter positions at the frames' stamps, each frame's points corrected
-with its own image motion (a keyframe's as it was when made). A frame's motion is its fit against the
-previous frame's: fitted first with the previous motion, refitted once with its own. While the estimate
+with its own image motion (a keyframe's as it was when made; the rotation's, without the zoom). A
+frame's motion is its fit against the previous frame's: fitted first with the previous motion, refitted
+once with its own. While the estimate
 is not significant nothing is corrected (a global shutter is tracked exactly as without the model).
 
 The map persists through export_map()/restore_map() and frontend.tracker_map (a restarted tracker
