@@ -209,6 +209,9 @@ MIN_READOUT = 0.004  # seconds: an estimate below this is not applied (a global 
 MIN_FRAMES = 5  # frames combined at least before an estimate is applied
 MIN_GROUPS = 2  # ... from this many keyframes at least (frames of one keyframe share its errors)
 MAX_FRAME_ZOOM = 0.03  # frames zooming more than this from the previous one do not estimate (first order)
+# Frames this close to their keyframe do not estimate: the two velocities are one interval apart, the
+# readout's signal (their difference's) is below their errors (such frames estimate far too low).
+MIN_KEYFRAME_GAP = 2
 MAX_FRAME_SIGMA = 0.01  # seconds: a frame estimating worse than this has too little motion to count
 SETTLE_FRAMES = 40  # frames combined at least before the estimate settles
 SETTLE_RELATIVE = 0.03  # settled when sigma is below this share of the estimate (of MIN_READOUT: none)

@@ -63,6 +63,7 @@ from ptz_selfcal.frontend.keyframe_links import (
 )
 from ptz_selfcal.frontend.rolling_shutter import (
     MAX_FRAME_ZOOM,
+    MIN_KEYFRAME_GAP,
     FrameMotion,
     ReadoutEstimator,
     displacement,
@@ -362,7 +363,8 @@ class HomographyTracker:
             )
             fit = refit if refit is not None else fit
         zoom = local_scale(back, frame.image.shape)
-        if not self._readout.settled and keyframe.motion is not None and abs(zoom - 1.0) <= MAX_FRAME_ZOOM:
+        estimating = not self._readout.settled and keyframe.motion is not None
+        if estimating and abs(zoom - 1.0) <= MAX_FRAME_ZOOM and frame.index - keyframe.id >= MIN_KEYFRAME_GAP:
             height = frame.image.shape[0]
             # linearised about the readout in use (the points corrected for it)
             src_in = frame.corrected(src_raw[fit.inliers], keyframe.motion)
