@@ -183,13 +183,17 @@ def readout_step(
 
 
 def combine(estimates: ArrayLike, sigmas: ArrayLike) -> tuple[float, float]:
-    """Per-frame estimates with their sigmas -> (weighted median, sigma): inverse-variance weights,
-    the sigma inflated by the estimates' robust scatter about the median (outliers, model error)."""
+    """Per-frame estimates with their sigmas -> (weighted median, sigma): inverse-variance weights (the
+    sigmas floored at half their median), the sigma inflated by the estimates' robust scatter about the
+    median (outliers, model error)."""
     x, s = np.asarray(estimates, float), np.asarray(sigmas, float)
     keep = np.isfinite(x) & np.isfinite(s) & (s > 0.0)
     x, s = x[keep], s[keep]
     if len(x) == 0:
         return math.nan, math.inf
+    # no frame weighs more than 4 typical ones: a frame's sigma can be overconfident (its residual
+    # misses a systematic error), and one such frame would be the weighted median alone
+    s = np.maximum(s, 0.5 * float(np.median(s)))
     w = 1.0 / s**2
     order = np.argsort(x)
     cumulative = np.cumsum(w[order])
