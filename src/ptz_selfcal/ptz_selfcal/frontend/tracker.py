@@ -366,13 +366,13 @@ class HomographyTracker:
         estimating = not self._readout.settled and keyframe.motion is not None
         if estimating and abs(zoom - 1.0) <= MAX_FRAME_ZOOM and frame.index - keyframe.id >= MIN_KEYFRAME_GAP:
             height = frame.image.shape[0]
-            # linearised about the readout in use (the points corrected for it)
-            src_in = frame.corrected(src_raw[fit.inliers], keyframe.motion)
-            dst_in = frame.corrected(dst_raw[fit.inliers], frame.motion)
+            # linearised about no readout (the observed points), not about the one in use: an estimate
+            # fed back through the correction (and its inliers) drifted off in one of two bags
+            src_in, dst_in = src_raw[fit.inliers], dst_raw[fit.inliers]
             # the intervals' velocities: the stamps' (extrapolated) are noisier, attenuating the estimate
             d_src = displacement(src_in, keyframe.motion, height, frame.scale, at_stamp=False)
             d_dst = displacement(dst_in, frame.motion, height, frame.scale, at_stamp=False)
-            estimate, sigma, _ = readout_step(fit.H, src_in, dst_in, d_src, d_dst, frame.readout)
+            estimate, sigma, _ = readout_step(fit.H, src_in, dst_in, d_src, d_dst, 0.0, iterations=3)
             self._readout.add(estimate, sigma, keyframe.id)
         return fit
 
