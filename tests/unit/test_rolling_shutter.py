@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.linalg import expm
 
 from ptz_selfcal.camera.geometry import apply_homography, intrinsic_matrix, ptz_rotation
 from ptz_selfcal.frontend.homography import estimate_homography, max_deviation
@@ -156,3 +157,9 @@ def test_the_motion_without_zoom_and_the_velocity_at_the_stamp():
     faster = FrameMotion(pan.back, DT, previous=(slower.interval_generator, DT))
     expected = pan.interval_generator + 0.5 * (pan.interval_generator - slower.interval_generator)
     assert faster.generator == pytest.approx(expected)
+
+
+def test_the_generator_is_the_motions_logarithm():
+    pan = motion_of(0.0, FAST, (0.0, 0.0))
+    back = expm(-DT * pan.generator)  # the series' logarithm, inverted
+    assert back / back[2, 2] == pytest.approx(pan.back / pan.back[2, 2], abs=1e-9)

@@ -45,8 +45,7 @@ class FrameMotion:
         det = np.linalg.det(back)
         if not (self.dt > 0.0 and det > 0.0):
             return np.zeros((3, 3))
-        log = scipy.linalg.logm(back / np.cbrt(det))
-        return -np.real(log) / self.dt
+        return -_log_near_identity(back / np.cbrt(det)) / self.dt
 
     @cached_property
     def generator(self) -> Array:
@@ -57,6 +56,19 @@ class FrameMotion:
             return A
         A_earlier, dt_earlier = self.previous
         return A + (A - A_earlier) * self.dt / (self.dt + dt_earlier)
+
+
+def _log_near_identity(M: Array) -> Array:
+    """Matrix logarithm: the Mercator series for a frame's motion (close to I: 10 terms, far below the
+    noise), scipy's logm otherwise (about 30x slower)."""
+    E = M - np.eye(3)
+    if np.linalg.norm(E, 2) > 0.2:
+        return np.real(scipy.linalg.logm(M))
+    log, power = np.zeros((3, 3)), np.eye(3)
+    for k in range(1, 11):
+        power = power @ E
+        log += power * ((-1.0) ** (k + 1) / k)
+    return log
 
 
 def rotation_motion(back: Array, shape: tuple[int, ...]) -> Array:
