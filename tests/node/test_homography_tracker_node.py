@@ -149,6 +149,7 @@ def test_one_homography_per_frame_accurate_and_lost_frames_flagged(
         error = np.linalg.norm(apply_homography(h, CORNERS) - apply_homography(H_true, CORNERS), axis=1)
         assert error.max() < 0.6, (msg.seq, error)  # full-resolution pixels: 3x the worst frame
         assert msg.reference_stamp == harness.homographies[0].header.stamp
+        assert msg.rolling_shutter_readout == 0.0  # a global shutter: estimated, never applied
     for msg in harness.homographies[len(pans) :]:
         assert tracking_state(msg) in LOST_STATES
         assert np.array_equal(np.asarray(msg.h), np.eye(3).ravel()) and msg.inlier_count == 0
@@ -159,6 +160,9 @@ def test_one_homography_per_frame_accurate_and_lost_frames_flagged(
     assert harness.spin(
         5.0, lambda: harness.diagnostics and harness.diagnostics[-1].get("frames_out") == str(n)
     )
+    diagnostics = harness.diagnostics[-1]
+    assert diagnostics["rolling_shutter"] in ("estimating", "estimated, settled")
+    assert diagnostics["rolling_shutter_readout_ms"] == "0.000" and "rolling_shutter_sigma_ms" in diagnostics
     assert proc.alive()
     assert proc.stop() == 0
 

@@ -272,12 +272,31 @@ def robust_homography(
     inliers = mask.ravel().astype(bool)
     if inliers.sum() < min_inliers:
         return None
-    inliers = _adaptive_inliers(H, src64, dst64, inliers, params.threshold, sigma_factor)
+    return refit_homography(H, src64, dst64, inliers, params.threshold, min_inliers, refine_iterations,
+                            sigma_factor)  # fmt: skip
+
+
+def refit_homography(
+    H: Array,
+    src: np.ndarray,
+    dst: np.ndarray,
+    inliers: NDArray[np.bool_],
+    threshold: float,
+    min_inliers: int,
+    refine_iterations: int = 10,
+    sigma_factor: float = 4.0,
+) -> RobustFit | None:
+    """robust_homography after its sample consensus: from H and its inliers, LM on the transfer error of
+    the inliers re-selected at sigma_factor robust standard deviations (capped by `threshold`); also the
+    refit of points corrected a little (a rolling shutter's global-shutter positions)."""
+    src64 = np.asarray(src, np.float64).reshape(-1, 2)
+    dst64 = np.asarray(dst, np.float64).reshape(-1, 2)
+    inliers = _adaptive_inliers(H, src64, dst64, inliers, threshold, sigma_factor)
     for _ in range(2):  # LM on the inliers; once more if that changed the inlier set
         if inliers.sum() < min_inliers:
             return None
         H = refine_homography(H, src64[inliers], dst64[inliers], max_nfev=refine_iterations)
-        updated = _adaptive_inliers(H, src64, dst64, inliers, params.threshold, sigma_factor)
+        updated = _adaptive_inliers(H, src64, dst64, inliers, threshold, sigma_factor)
         if np.array_equal(updated, inliers) or updated.sum() < min_inliers:
             break
         inliers = updated

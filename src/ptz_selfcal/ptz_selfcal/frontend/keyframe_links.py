@@ -5,7 +5,9 @@ back to a view.
 A link is measured photometrically (the keyframe warped by a predicted homography, the frame's corners
 tracked into it by KLT), starting from the chain's prediction or from descriptor matches, and checked
 against the chain. The links of a new keyframe are the bundle adjustment's input (the calibrator's
-KeyframeMatches). Working-resolution pixels inside, full resolution in KeyframeLink.
+KeyframeMatches). Working-resolution pixels inside, full resolution in KeyframeLink. With a rolling
+shutter (LinkFrame.readout) every fit is on global-shutter positions (frontend.rolling_shutter): a
+keyframe's points corrected with its own motion, the frame's with the frame's.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from ptz_selfcal.frontend.features import (
     track_klt,
 )
 from ptz_selfcal.frontend.homography import max_deviation, plausible
+from ptz_selfcal.frontend.rolling_shutter import FrameMotion, global_shutter
 from ptz_selfcal.frontend.tracker_config import TrackerConfig
 
 Array = NDArray[np.float64]
@@ -67,6 +70,7 @@ class MapKeyframe:
     depth: int  # keyframe links between the reference and this keyframe
     corners: Points  # corners detected in the keyframe (working pixels)
     descriptors: Descriptors | None  # computed on first use
+    motion: FrameMotion | None = None  # its image motion when made (rolling shutter; None: none known)
 
 
 @dataclass
@@ -77,6 +81,15 @@ class LinkFrame:
     index: int  # frame index (the id it gets as a keyframe)
     scale: float  # working / full resolution
     descriptors: Descriptors | None = None
+    readout: float = 0.0  # rolling-shutter readout time (s) the fits correct for (0: none)
+    motion: FrameMotion | None = None  # the frame's image motion, once tracked (None: none known)
+
+    def corrected(self, points: np.ndarray, motion: FrameMotion | None) -> np.ndarray:
+        """Global-shutter positions of points of this frame (or of a keyframe of the same size: its
+        `motion`); the points themselves without a readout or a motion."""
+        if self.readout == 0.0 or motion is None:
+            return points
+        return global_shutter(points, motion, self.readout, self.image.shape[0], self.scale)
 
 
 @dataclass(frozen=True)
@@ -165,6 +178,7 @@ class KeyframeLinker:
         src, dst = match_descriptors(
             self._descriptors_of(kf), self._frame_descriptors(frame), c.descriptor_ratio
         )
+        src, dst = frame.corrected(src, kf.motion), frame.corrected(dst, frame.motion)
         fit = robust_homography(src, dst, c.usac(frame.scale, 3.0), c.min_inliers, c.refine_iterations)
         if fit is None or not plausible(fit.H, frame.image.shape):
             return None
@@ -204,8 +218,8 @@ class KeyframeLinker:
         found, ok = track_klt(image, warped, pts, self._klt, initial=pts, levels=2)
         if ok.sum() < c.min_inliers:
             return None
-        src = apply_homography(np.linalg.inv(H0), found[ok])
-        dst = pts[ok].astype(np.float64)
+        src = frame.corrected(apply_homography(np.linalg.inv(H0), found[ok]), kf.motion)
+        dst = frame.corrected(pts[ok].astype(np.float64), frame.motion)
         fit = robust_homography(src, dst, c.usac(frame.scale), c.min_inliers, c.refine_iterations)
         return None if fit is None else (fit, src[fit.inliers], dst[fit.inliers])
 

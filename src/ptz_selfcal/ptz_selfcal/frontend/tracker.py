@@ -17,6 +17,14 @@ After a loss (black frame, cut, fast move) descriptor matching against the store
 the camera.
 Homographies in results are in full-resolution pixels (x_work = (x_full + 0.5) * s - 0.5).
 
+Rolling shutter (frontend.rolling_shutter; TrackerConfig.rolling_shutter_readout: known, or estimated
+from the tracked frames): KLT measures the observed (rolling-shutter) positions; every fit, link and
+published point is on the global-shutter positions at the frames' stamps, each frame's points corrected
+with its own image motion (a keyframe's as it was when made; the rotation's, without the zoom). A
+frame's motion is its fit against the previous frame's: fitted first with the previous motion, refitted
+once with its own. While the estimate
+is not significant nothing is corrected (a global shutter is tracked exactly as without the model).
+
 The map persists through export_map()/restore_map() and frontend.tracker_map (a restarted tracker
 relocalises against it and keeps its reference and keyframe ids). Links are measured by
 frontend.keyframe_links, the settings are frontend.tracker_config.TrackerConfig.
@@ -40,6 +48,7 @@ from ptz_selfcal.frontend.features import (
     detect_corners,
     gain_matched,
     gain_matched_warp,
+    refit_homography,
     robust_homography,
     track_klt,
 )
@@ -51,6 +60,15 @@ from ptz_selfcal.frontend.keyframe_links import (
     MapKeyframe,
     MeasuredLink,
     make_link,
+)
+from ptz_selfcal.frontend.rolling_shutter import (
+    MAX_FRAME_ZOOM,
+    MIN_KEYFRAME_GAP,
+    FrameMotion,
+    ReadoutEstimator,
+    displacement,
+    readout_step,
+    rotation_motion,
 )
 from ptz_selfcal.frontend.tracker_config import TrackerConfig
 from ptz_selfcal.frontend.tracker_map import StoredKeyframe, TrackerMap
@@ -83,6 +101,7 @@ class TrackResult:
     match_count: int
     rms_transfer_error: float  # full-resolution pixels
     links: tuple[KeyframeLink, ...] = ()  # for NEW_KEYFRAME / RELOCALISED: links of the new keyframe
+    readout: float = 0.0  # rolling-shutter readout (s) H and links are corrected for (0: none)
 
 
 @dataclass
@@ -101,6 +120,8 @@ class HomographyTracker:
         self.config = config or TrackerConfig()
         self._klt = self.config.klt()
         self._linker = KeyframeLinker(self.config)
+        # the camera's, not the map's: kept through reset()
+        self._readout = ReadoutEstimator(self.config.rolling_shutter_readout)
         self.reset()
 
     # ------------------------------------------------------------------ public API
@@ -117,6 +138,13 @@ class HomographyTracker:
         self._lost = False
         self._frame: LinkFrame | None = None  # the frame being tracked, as links see it
         self._last_H_ref: Array | None = None  # reference -> previous frame (full res; None: no H)
+        self._last_stamp: float | None = None  # the previous frame's stamp
+        self._last_motion: FrameMotion | None = None  # the previous frame's image motion
+
+    @property
+    def readout(self) -> ReadoutEstimator:
+        """The rolling-shutter readout time: known or estimated, its sigma, and the one applied."""
+        return self._readout
 
     def keyframes(self) -> dict[int, Array]:
         """Stored keyframes of the current map: id -> H (reference -> keyframe, full resolution)."""
@@ -207,7 +235,8 @@ class HomographyTracker:
             self._frame_index = frame_index  # ids stay unique over the tracker's life
         self._scale = scale
         self._frame_index += 1
-        self._frame = LinkFrame(image, self._frame_index, scale)
+        readout = self._readout.applied if stamp is not None else 0.0
+        self._frame = LinkFrame(image, self._frame_index, scale, readout=readout)
         if self._reference_id is None:
             result = self._start_map(image, stamp)
         elif self._lost:
@@ -216,7 +245,8 @@ class HomographyTracker:
             result = self._track_frame(image, stamp)
         self._previous = image
         self._last_H_ref = result.H_ref
-        return result
+        self._last_stamp, self._last_motion = stamp, self._frame.motion
+        return replace(result, readout=readout) if readout != 0.0 and result.H_ref is not None else result
 
     # ------------------------------------------------------------------ per-frame tracking
     def _track_frame(self, image: np.ndarray, stamp: float | None) -> TrackResult:
@@ -238,6 +268,7 @@ class HomographyTracker:
         match_count = int(ok.sum())
         if fit is None or fit.inliers.sum() < c.min_inlier_ratio * max(match_count, 1):
             return self._lose(image, stamp, match_count)
+        fit = self._rolling_shutter(keyframe, current, ok, fit, stamp)
         keep = np.flatnonzero(ok)[fit.inliers]
         self._tracks.current = current[keep]
         self._tracks.in_keyframe = self._tracks.in_keyframe[keep]
@@ -284,14 +315,66 @@ class HomographyTracker:
         return current, ok, None
 
     def _fit_tracks(self, current: Points, ok: NDArray[np.bool_]) -> RobustFit | None:
-        """Keyframe -> frame homography (working pixels) from the tracks that survived KLT."""
+        """Keyframe -> frame homography (working pixels) from the tracks that survived KLT (global-shutter
+        positions: the frame's with the previous frame's motion until _rolling_shutter refits)."""
         c = self.config
         if ok.sum() < c.min_inliers:
             return None
         usac = c.usac(self._scale)
-        return robust_homography(
-            self._tracks.in_keyframe[ok], current[ok], usac, c.min_inliers, c.refine_iterations
-        )
+        keyframe = self._keyframes[self._keyframe_id]
+        src = self._frame.corrected(self._tracks.in_keyframe[ok], keyframe.motion)
+        dst = self._frame.corrected(current[ok], self._last_motion)
+        return robust_homography(src, dst, usac, c.min_inliers, c.refine_iterations)
+
+    def _rolling_shutter(
+        self,
+        keyframe: MapKeyframe,
+        current: Points,
+        ok: NDArray[np.bool_],
+        fit: RobustFit,
+        stamp: float | None,
+    ) -> RobustFit:
+        """The frame's motion from its fit; with a readout the fit redone on the frame's points corrected
+        with it; while estimating, this frame's readout estimate added (rolling_shutter.readout_step)."""
+        tracks, frame, c = self._tracks, self._frame, self.config
+        if (
+            not self._readout.enabled
+            or stamp is None
+            or self._last_stamp is None
+            or stamp <= self._last_stamp
+        ):
+            return fit
+        # this frame -> keyframe -> the previous frame (tracked against the same keyframe)
+        back = tracks.H_last @ np.linalg.inv(fit.H)
+        last = self._last_motion
+        previous = None if last is None else (last.interval_generator, last.dt)
+        frame.motion = FrameMotion(back=rotation_motion(back, frame.image.shape), dt=stamp - self._last_stamp,
+                                   previous=previous)  # fmt: skip
+        if keyframe.motion is None and keyframe.id == frame.index - 1:
+            # a keyframe made without a motion (the first, a relocalised one): the same interval's
+            keyframe.motion = frame.motion
+        src_raw, dst_raw = tracks.in_keyframe[ok], current[ok]
+        if frame.readout != 0.0:
+            src = frame.corrected(src_raw, keyframe.motion)
+            dst = frame.corrected(dst_raw, frame.motion)
+            threshold = c.usac(self._scale).threshold
+            refit = refit_homography(
+                fit.H, src, dst, fit.inliers, threshold, c.min_inliers, c.refine_iterations
+            )
+            fit = refit if refit is not None else fit
+        zoom = local_scale(back, frame.image.shape)
+        estimating = not self._readout.settled and keyframe.motion is not None
+        if estimating and abs(zoom - 1.0) <= MAX_FRAME_ZOOM and frame.index - keyframe.id >= MIN_KEYFRAME_GAP:
+            height = frame.image.shape[0]
+            # linearised about no readout (the observed points), not about the one in use: an estimate
+            # fed back through the correction (and its inliers) drifted off in one of two bags
+            src_in, dst_in = src_raw[fit.inliers], dst_raw[fit.inliers]
+            # the intervals' velocities: the stamps' (extrapolated) are noisier, attenuating the estimate
+            d_src = displacement(src_in, keyframe.motion, height, frame.scale, at_stamp=False)
+            d_dst = displacement(dst_in, frame.motion, height, frame.scale, at_stamp=False)
+            estimate, sigma, _ = readout_step(fit.H, src_in, dst_in, d_src, d_dst, 0.0, iterations=3)
+            self._readout.add(estimate, sigma, keyframe.id)
+        return fit
 
     def _klt_tracks(
         self, keyframe: MapKeyframe, image: np.ndarray
@@ -375,7 +458,12 @@ class HomographyTracker:
             )  # fmt: skip
         # The tracked fit is the parent link: its inliers were measured against the (warped) parent.
         tracks = self._tracks
-        parent_link = make_link(parent, fit, tracks.in_keyframe, tracks.current, self._scale)
+        frame = self._frame
+        src, dst = (
+            frame.corrected(tracks.in_keyframe, parent.motion),
+            frame.corrected(tracks.current, frame.motion),
+        )
+        parent_link = make_link(parent, fit, src, dst, self._scale)
         links = [MeasuredLink(parent, fit, parent_link)]
         H_ref_guess = homography_work_to_full(fit.H, self._scale) @ parent.H_ref
         for kf, H_chain in self._older_candidates(image, H_ref_guess, parent.id):
@@ -513,7 +601,9 @@ class HomographyTracker:
         corners: Points,
         descriptors: Descriptors | None = None,
     ) -> MapKeyframe:
-        keyframe = MapKeyframe(self._frame_index, stamp, image, H_ref, depth, corners, descriptors)
+        keyframe = MapKeyframe(
+            self._frame_index, stamp, image, H_ref, depth, corners, descriptors, motion=self._frame.motion
+        )
         self._keyframes[keyframe.id] = keyframe
         self._keyframe_id = keyframe.id
         # Keep the frame-to-frame motion for the constant-velocity prediction: the tracked one, or after a

@@ -57,6 +57,8 @@ class TrackerConfig:
     new_map_after_lost: int = 30  # frames lost (with texture) before a new map is started
     repeat_threshold: float = 5.0  # re-warp and re-track when the prediction was off by more (full px)
     verify_threshold: float = 16.0  # fits further than this from the prediction are checked by descriptors
+    # Rolling shutter (rows exposed one after another): fits and points corrected to the middle row.
+    rolling_shutter_readout: float = -1.0  # s, first row to last (< 0: estimated from the images, 0: none)
     gain_compensation: bool = True  # match brightness before KLT: a smooth gain field (exposure, vignetting)
     seed: int = 0
 

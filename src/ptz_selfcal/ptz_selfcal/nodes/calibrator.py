@@ -311,6 +311,8 @@ class CalibratorNode(Node):
         fc.residual = _finite_or(out.residual, -1.0)
         fc.keyframe_id = int(out.keyframe_id) & 0xFFFFFFFF
         fc.keyframe_count = int(out.keyframe_count)
+        readout = float(msg.rolling_shutter_readout)  # what the tracker corrected the homography for
+        fc.rolling_shutter_readout = readout if math.isfinite(readout) else 0.0
         self._frame_pub.publish(fc)
         self._counts["camera_info_out"] += 1
 

@@ -129,6 +129,8 @@ MAP_FILE = "tracker_map.npz"
 # TrackerConfig fields the node does not expose (frame_ingest chooses the working scale).
 _NOT_PARAMETERS = {"working_scale"}
 _FRACTIONS = {"ratio", "fraction", "overlap", "level", "confidence"}  # name words of (0, 1] values
+# TrackerConfig fields whose negative values mean something, with their range
+_SIGNED = {"rolling_shutter_readout": (-1.0, 1.0)}  # < 0: estimated from the images
 
 
 def _field_comments() -> dict[str, str]:
@@ -164,12 +166,16 @@ def tracker_params() -> list[Param]:
 
 def _tracker_bounds(name: str) -> tuple[float, float]:
     """The descriptor's range of what _tracker_check accepts (a fraction's 0 is refused by the check)."""
+    if name in _SIGNED:
+        return _SIGNED[name]
     return (0.0, 1.0) if _FRACTIONS & set(name.split("_")) else (0.0, sys.float_info.max)
 
 
 def _tracker_check(name: str, default: Any) -> Any:
     if isinstance(default, str):
         return one_of(*TRACKER_CHOICES.get(name, (default,)))
+    if name in _SIGNED:
+        return in_range(*_SIGNED[name])
 
     def check(value: Any) -> str | None:
         if isinstance(default, bool):
@@ -398,6 +404,7 @@ class HomographyTrackerNode(Node):
             rms = float(result.rms_transfer_error)
             out.rms_transfer_error = rms if math.isfinite(rms) else 0.0
         out.state = TRACKING_STATE_TO_MSG[state]
+        out.rolling_shutter_readout = 0.0 if state in LOST_STATES else float(result.readout)
         if result is not None and result.keyframe_id is not None:
             out.keyframe_id = int(result.keyframe_id)
         if self._reference is not None:
@@ -449,6 +456,25 @@ class HomographyTrackerNode(Node):
             for kid in [k for k in self._keyframe_stamps if k not in alive]:
                 del self._keyframe_stamps[kid]
 
+    def _readout_values(self) -> dict[str, Any]:
+        """The rolling-shutter readout: in use, estimated (its 1-sigma, frames) and how it is known."""
+        readout = self._tracker.readout
+        if not readout.enabled:
+            mode = "off (global shutter)"
+        elif readout.known:
+            mode = "known (tracker.rolling_shutter_readout)"
+        else:
+            mode = "estimated, settled" if readout.settled else "estimating"
+        values: dict[str, Any] = {
+            "rolling_shutter": mode,
+            "rolling_shutter_readout_ms": f"{1e3 * readout.applied:.3f}",
+        }
+        if not readout.known:
+            values["rolling_shutter_estimate_ms"] = f"{1e3 * readout.estimate:.3f}"
+            values["rolling_shutter_sigma_ms"] = f"{1e3 * readout.sigma:.3f}"
+            values["rolling_shutter_frames"] = readout.frames
+        return values
+
     def _publish_diagnostics(self) -> None:
         counters: dict[str, Any] = {"frames_in": 0, "frames_out": 0, "frames_dropped": 0}
         counters.update(sorted(self._counts.items()))
@@ -458,6 +484,7 @@ class HomographyTrackerNode(Node):
             counters["track_ms_mean"] = f"{d.mean():.2f}"
             counters["track_ms_p95"] = f"{np.percentile(d, 95):.2f}"
             counters["track_ms_max"] = f"{d.max():.2f}"
+        counters.update(self._readout_values())
         counters["keyframes"] = len(self._keyframe_stamps)
         counters["map_keyframes"] = len(self._tracker.keyframes())  # in the tracker's store (max_keyframes)
         # matched on this side (what an output published now reaches), so a graph's readiness is observable
